@@ -1,0 +1,75 @@
+# Development workflow for cbcan_ros on a machine without a ROS install:
+# ROS 2 Jazzy comes from PyPI wheels in .venv/, colcon builds into build/ install/ log/.
+# On a real ROS 2 Jazzy install, a plain `colcon build` in a workspace works instead.
+
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DEFAULT_GOAL := build
+
+ROOT    := $(abspath $(dir $(lastword $(MAKEFILE_LIST))))
+VENV    := $(ROOT)/.venv
+PY      := $(VENV)/bin/python
+PYTHON3 ?= python3
+ROS_ENV := $(ROOT)/tools/ros-env
+ARGS    ?=
+
+VENV_STAMP  := $(VENV)/.installed
+BUILD_STAMP := $(ROOT)/install/.cbcan_ros.built
+
+# Everything that goes into the build.  Directories are listed too, so adding or
+# removing a file (which changes the directory's mtime) also triggers a rebuild.
+BUILD_INPUTS := $(ROOT)/package.xml $(ROOT)/CMakeLists.txt \
+  $(shell cd $(ROOT) && find srv_defs cbcan_ros scripts config launch \
+      -name __pycache__ -prune -o -print 2>/dev/null)
+
+.PHONY: venv build test run cli bench clean distclean
+
+venv: $(VENV_STAMP)
+
+$(VENV_STAMP): $(ROOT)/requirements.txt $(ROOT)/requirements-lock.txt
+	test -x $(PY) || $(PYTHON3) -m venv $(VENV)
+	_ROS_WHEELS_BOOTSTRAP_COMPLETE=1 $(PY) -m pip install --disable-pip-version-check -q \
+	  -r $(ROOT)/requirements.txt -c $(ROOT)/requirements-lock.txt
+	@# The wheels' exported CMake targets name the wheel builder's Python and NumPy
+	@# include dirs; CMake refuses to configure an interface package until they
+	@# point at this machine's.
+	pyinc=$$(_ROS_WHEELS_BOOTSTRAP_COMPLETE=1 $(PY) -c 'import sysconfig; print(sysconfig.get_paths()["include"])'); \
+	npinc=$$(_ROS_WHEELS_BOOTSTRAP_COMPLETE=1 $(PY) -c 'import numpy; print(numpy.get_include())'); \
+	{ grep -rlZ --include='*.cmake' -e '/opt/python/cp311-cp311/' $(VENV)/share || true; } \
+	  | xargs -0 -r sed -i \
+	    -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#$$npinc#g" \
+	    -e "s#/opt/python/cp311-cp311/include/python3.11#$$pyinc#g"
+	! grep -rl --include='*.cmake' -e '/opt/python/cp311-cp311/' $(VENV)/share
+	touch $@
+
+build: $(BUILD_STAMP)
+
+$(BUILD_STAMP): $(VENV_STAMP) $(BUILD_INPUTS)
+	cd $(ROOT) && env _ROS_WHEELS_BOOTSTRAP_COMPLETE=1 \
+	  PATH="$(VENV)/bin:$$PATH" \
+	  AMENT_PREFIX_PATH="$(VENV)" CMAKE_PREFIX_PATH="$(VENV)" \
+	  LD_LIBRARY_PATH="$(VENV)/lib$${LD_LIBRARY_PATH:+:$$LD_LIBRARY_PATH}" \
+	  $(VENV)/bin/colcon build --event-handlers console_direct- console_cohesion+ \
+	    --cmake-args -DPython3_EXECUTABLE=$(PY) -DCMAKE_BUILD_TYPE=RelWithDebInfo
+	touch $@
+
+# The `pytest` executable (not `python -m pytest`) leaves the working directory
+# off sys.path, so the source cbcan_ros/ (no generated msg/srv) cannot shadow
+# the installed package.
+test: build
+	$(ROS_ENV) pytest -q $(ROOT)/test $(ARGS)
+
+run: build
+	$(ROS_ENV) cbcan_node --ros-args --params-file $(ROOT)/config/simulation.yaml $(ARGS)
+
+cli: build
+	$(ROS_ENV) cbcan_cli $(ARGS)
+
+bench: build
+	$(ROS_ENV) python $(ROOT)/bench/bench_sdo.py $(ARGS)
+
+clean:
+	rm -rf $(ROOT)/build $(ROOT)/install $(ROOT)/log $(ROOT)/.pytest_cache
+
+distclean: clean
+	rm -rf $(VENV)

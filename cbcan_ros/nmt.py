@@ -1,0 +1,201 @@
+"""NMT: command codes, node states, and the heartbeat monitor that knows every node's state.
+
+States are only ever what a node itself reported (heartbeat, boot-up message or node guarding
+reply); a node silent for longer than the heartbeat timeout is NOT_DETECTED. canopen's
+``NmtMaster`` tracks state only for nodes added to the network and never times out, so the
+monitor subscribes to every heartbeat COB-ID itself and runs its own timeout watch.
+"""
+
+from dataclasses import dataclass
+import threading
+import time
+from typing import Callable, Dict, Iterable, List, Optional
+
+HEARTBEAT_COB_BASE = 0x700
+
+BOOT_UP = 0
+STOPPED = 4
+OPERATIONAL = 5
+NOT_DETECTED = 6
+PRE_OPERATIONAL = 127
+
+STATE_NAMES = {
+    BOOT_UP: 'BOOT_UP',
+    STOPPED: 'STOPPED',
+    OPERATIONAL: 'OPERATIONAL',
+    NOT_DETECTED: 'NOT_DETECTED',
+    PRE_OPERATIONAL: 'PRE_OPERATIONAL',
+}
+
+START = 1
+STOP = 2
+ENTER_PRE_OPERATIONAL = 128
+RESET_NODE = 129
+RESET_COMMUNICATION = 130
+
+COMMAND_NAMES = {
+    START: 'START',
+    STOP: 'STOP',
+    ENTER_PRE_OPERATIONAL: 'ENTER_PRE_OPERATIONAL',
+    RESET_NODE: 'RESET_NODE',
+    RESET_COMMUNICATION: 'RESET_COMMUNICATION',
+}
+
+
+def state_name(state: int) -> str:
+    """Return the name of an NMT state byte, or 'UNKNOWN_<n>' for one CiA 301 does not define."""
+    return STATE_NAMES.get(state, f'UNKNOWN_{state}')
+
+
+@dataclass(frozen=True)
+class NodeStatus:
+    """What is known of one node: its last reported state and when it last spoke."""
+
+    node_id: int
+    state: int
+    last_seen: Optional[float]  # time.time() of the last message; None if never seen
+    last_seen_age: float        # seconds since then; -1 if never seen
+
+    @property
+    def state_name(self) -> str:
+        """Return the state's name, e.g. 'OPERATIONAL'."""
+        return state_name(self.state)
+
+
+class _Entry:
+    __slots__ = ('state', 'last_monotonic', 'last_wall')
+
+    def __init__(self):
+        self.state = NOT_DETECTED
+        self.last_monotonic: Optional[float] = None
+        self.last_wall: Optional[float] = None
+
+
+class HeartbeatMonitor:
+    """Tracks the NMT state of every node that sends heartbeats, boot-ups or guarding replies.
+
+    Listeners are called (from a bus or watcher thread, without locks held) whenever a node
+    appears, changes state, or times out.
+    """
+
+    def __init__(self, network, timeout: float, expected_nodes: Iterable[int] = ()):
+        self._network = network
+        self._timeout = timeout
+        self._nodes: Dict[int, _Entry] = {node_id: _Entry() for node_id in expected_nodes}
+        self._listeners: List[Callable[[], None]] = []
+        self._changed = threading.Condition()
+        self._running = False
+        self._watcher = threading.Thread(target=self._watch, name='heartbeat-timeouts',
+                                         daemon=True)
+
+    def add_listener(self, listener: Callable[[], None]) -> None:
+        """Call ``listener()`` after every change of the picture."""
+        self._listeners.append(listener)
+
+    def start(self) -> None:
+        """Listen to every heartbeat COB-ID and start watching for timeouts."""
+        for node_id in range(1, 128):
+            self._network.subscribe(HEARTBEAT_COB_BASE + node_id, self._on_frame)
+        self._running = True
+        self._watcher.start()
+
+    def stop(self) -> None:
+        """Stop listening and watching."""
+        for node_id in range(1, 128):
+            self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_frame)
+        with self._changed:
+            self._running = False
+            self._changed.notify_all()
+        if self._watcher.is_alive():
+            self._watcher.join()
+
+    def status(self, node_id: int) -> NodeStatus:
+        """Return what is known of ``node_id`` (NOT_DETECTED if never seen)."""
+        with self._changed:
+            return self._status(node_id, self._nodes.get(node_id) or _Entry(), time.monotonic())
+
+    def statuses(self) -> List[NodeStatus]:
+        """Return every known node (expected or seen), sorted by node id."""
+        with self._changed:
+            now = time.monotonic()
+            return [self._status(node_id, entry, now)
+                    for node_id, entry in sorted(self._nodes.items())]
+
+    @staticmethod
+    def _status(node_id: int, entry: _Entry, now: float) -> NodeStatus:
+        if entry.last_monotonic is None:
+            return NodeStatus(node_id, entry.state, None, -1.0)
+        return NodeStatus(node_id, entry.state, entry.last_wall, now - entry.last_monotonic)
+
+    def _on_frame(self, can_id: int, data: bytearray, _timestamp: float) -> None:
+        if not data:
+            return
+        node_id = can_id - HEARTBEAT_COB_BASE
+        state = data[0] & 0x7F  # bit 7 is the node guarding toggle bit
+        with self._changed:
+            entry = self._nodes.get(node_id)
+            is_new = entry is None
+            if is_new:
+                entry = self._nodes[node_id] = _Entry()
+            changed = is_new or entry.state != state
+            entry.state = state
+            entry.last_monotonic = time.monotonic()
+            entry.last_wall = time.time()
+            if changed:
+                self._changed.notify_all()
+        if changed:
+            self._notify()
+
+    def _watch(self) -> None:
+        with self._changed:
+            while self._running:
+                now = time.monotonic()
+                timed_out = False
+                next_deadline = None
+                for entry in self._nodes.values():
+                    if entry.last_monotonic is None or entry.state == NOT_DETECTED:
+                        continue
+                    deadline = entry.last_monotonic + self._timeout
+                    if deadline <= now:
+                        entry.state = NOT_DETECTED
+                        timed_out = True
+                    elif next_deadline is None or deadline < next_deadline:
+                        next_deadline = deadline
+                if timed_out:
+                    self._changed.release()
+                    try:
+                        self._notify()
+                    finally:
+                        self._changed.acquire()
+                    continue
+                self._changed.wait(None if next_deadline is None else next_deadline - now)
+
+    def _notify(self) -> None:
+        for listener in self._listeners:
+            listener()
+
+
+class NodeGuarding:
+    """Polls nodes without a heartbeat producer by node guarding (RTR on 0x700 + id).
+
+    Their replies arrive on the heartbeat COB-ID and are tracked by the monitor like
+    heartbeats; the state byte's toggle bit is masked there.
+    """
+
+    def __init__(self, network, node_ids: Iterable[int], period: float):
+        self._network = network
+        self._node_ids = sorted(set(node_ids))
+        self._period = period
+        self._tasks = []
+
+    def start(self) -> None:
+        """Start one periodic remote request per guarded node."""
+        self._tasks = [self._network.send_periodic(HEARTBEAT_COB_BASE + node_id, [],
+                                                   self._period, remote=True)
+                       for node_id in self._node_ids]
+
+    def stop(self) -> None:
+        """Stop polling."""
+        for task in self._tasks:
+            task.stop()
+        self._tasks = []

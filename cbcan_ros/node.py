@@ -1,0 +1,255 @@
+"""The ROS 2 node: maps parameters, services and the node-state topic onto the gateway core.
+
+Service callbacks are coroutines. An SDO is handed to the device's worker thread and the
+callback awaits its completion, so the executor keeps serving other calls, timers and
+publishers while a slow device takes its time.
+"""
+
+from concurrent.futures import Future as ConcurrentFuture
+import os
+import sys
+from typing import List
+
+from builtin_interfaces.msg import Time
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+import rclpy
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+import rclpy.task
+
+from .gateway import Gateway, GatewayConfig
+from .mailbox import Mailbox
+from .msg import NodeState, NodeStates
+from .nmt import state_name
+from .simulation import SimulatedDevice
+from .srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite
+
+NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+# The default service QoS keeps 10 requests: a burst of calls (one per device, say) loses
+# the oldest before the executor takes them. Clients sending bursts need the same depth.
+SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=256,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+
+
+def _time(seconds: float) -> Time:
+    whole = int(seconds)
+    return Time(sec=whole, nanosec=int((seconds - whole) * 1e9))
+
+
+class CbcanNode(Node):
+    """One CAN bus as ROS 2 services and a node-state topic."""
+
+    def __init__(self, **kwargs):
+        super().__init__('cbcan', **kwargs)
+        self.gateway = Gateway(self._read_config())
+        self._simulated = [
+            SimulatedDevice(node_id, self._simulation_eds(), self.gateway.config.interface,
+                            self.gateway.config.channel)
+            for node_id in self._node_ids('simulation.devices')]
+        self.gateway.start()
+        for device in self._simulated:
+            device.start()
+
+        calls = ReentrantCallbackGroup()
+        for service_type, name, callback in (
+                (SdoRead, 'sdo_read', self._on_sdo_read),
+                (SdoWrite, 'sdo_write', self._on_sdo_write),
+                (NmtCommand, 'nmt_command', self._on_nmt_command),
+                (NmtState, 'nmt_state', self._on_nmt_state),
+                (RegisterMailbox, 'plc_mailbox', self._on_plc_mailbox)):
+            self.create_service(service_type, f'~/{name}', callback, qos_profile=SERVICE_QOS,
+                                callback_group=calls)
+        self._mailbox = Mailbox(self.gateway, self._completion)
+
+        self._states_publisher = self.create_publisher(NodeStates, '~/node_states',
+                                                       NODE_STATES_QOS)
+        self._states_changed = self.create_guard_condition(self._publish_states)
+        self.gateway.monitor.add_listener(self._states_changed.trigger)
+        self.create_timer(self.get_parameter('state_publish_period').value,
+                          self._publish_states)
+        self._publish_states()
+        config = self.gateway.config
+        self.get_logger().info(
+            f'CANopen gateway on {config.interface} channel {config.channel!r}; '
+            f'simulated devices: {[d.node_id for d in self._simulated] or "none"}')
+
+    def destroy_node(self) -> None:
+        """Stop the simulated devices and close the bus."""
+        for device in self._simulated:
+            device.stop()
+        self.gateway.stop()
+        super().destroy_node()
+
+    def _declare(self, name: str, value, description: str, **ranges) -> Parameter:
+        descriptor = ParameterDescriptor(description=description, **ranges)
+        if isinstance(value, Parameter.Type):
+            descriptor.type = value.value
+        return self.declare_parameter(name, value, descriptor)
+
+    def _read_config(self) -> GatewayConfig:
+        self._declare('can.interface', 'virtual',
+                      'python-can interface name: socketcan, pcan, kvaser, slcan, '
+                      'udp_multicast, virtual (in-process only), ...')
+        self._declare('can.channel', 'can0',
+                      'python-can channel: e.g. can0 for socketcan, PCAN_USBBUS1 for pcan, '
+                      'a multicast group address for udp_multicast')
+        self._declare('can.bitrate', 0,
+                      'Bit rate in bit/s for interfaces that set it (pcan, kvaser, slcan); '
+                      '0 leaves the interface as configured',
+                      integer_range=[IntegerRange(from_value=0, to_value=1_000_000, step=0)])
+        self._declare('sdo.timeout', 0.5,
+                      'Seconds to wait for each SDO answer from a device, unless a request '
+                      'gives its own timeout',
+                      floating_point_range=[FloatingPointRange(
+                          from_value=0.001, to_value=60.0, step=0.0)])
+        self._declare('sdo.block_transfer', False,
+                      'Try SDO block transfer first; devices that refuse it get segmented '
+                      'transfers')
+        self._declare('nodes', Parameter.Type.INTEGER_ARRAY,
+                      'Node ids (1..127) the gateway expects; they are listed as '
+                      'NOT_DETECTED until they send a heartbeat')
+        self._declare('heartbeat.timeout', 3.0,
+                      'Seconds without heartbeat, boot-up or guarding reply after which a '
+                      'node is NOT_DETECTED',
+                      floating_point_range=[FloatingPointRange(
+                          from_value=0.01, to_value=3600.0, step=0.0)])
+        self._declare('node_guarding', Parameter.Type.INTEGER_ARRAY,
+                      'Node ids (1..127) without heartbeat producer to poll by node guarding')
+        self._declare('node_guarding_period', 1.0,
+                      'Seconds between node guarding requests to each guarded node',
+                      floating_point_range=[FloatingPointRange(
+                          from_value=0.01, to_value=60.0, step=0.0)])
+        self._declare('state_publish_period', 1.0,
+                      'Seconds between publications of ~/node_states when nothing changes',
+                      floating_point_range=[FloatingPointRange(
+                          from_value=0.01, to_value=3600.0, step=0.0)])
+        self._declare('simulation.devices', Parameter.Type.INTEGER_ARRAY,
+                      'Node ids (1..127) of simulated CANopen devices to put on the bus, for '
+                      'trying the gateway without hardware; empty on a real bus')
+        self._declare('simulation.eds', '',
+                      'EDS file of the simulated devices; empty = the one shipped in config/')
+        value = self._value
+        return GatewayConfig(
+            interface=value('can.interface'),
+            channel=value('can.channel'),
+            bitrate=value('can.bitrate'),
+            sdo_timeout=value('sdo.timeout'),
+            block_transfer=value('sdo.block_transfer'),
+            heartbeat_timeout=value('heartbeat.timeout'),
+            expected_nodes=tuple(self._node_ids('nodes')),
+            guarded_nodes=tuple(self._node_ids('node_guarding')),
+            guard_period=value('node_guarding_period'))
+
+    def _value(self, name: str):
+        return self.get_parameter(name).value
+
+    def _node_ids(self, name: str) -> List[int]:
+        parameter = self.get_parameter_or(name, Parameter(name, value=[]))
+        node_ids = list(parameter.value or [])
+        wrong = [node_id for node_id in node_ids if not 1 <= node_id <= 127]
+        if wrong:
+            raise ValueError(f'parameter {name}: node ids {wrong} are out of range 1..127')
+        return node_ids
+
+    def _simulation_eds(self) -> str:
+        path = self._value('simulation.eds')
+        if path:
+            return path
+        from ament_index_python.packages import get_package_share_directory
+        return os.path.join(get_package_share_directory('cbcan_ros'), 'config',
+                            'simulated_device.eds')
+
+    async def _completion(self, future: ConcurrentFuture):
+        """Await a worker's future without holding an executor thread."""
+        if future.done():
+            return future.result()
+        executor = self.executor
+        done = rclpy.task.Future(executor=executor)
+
+        def hand_over(finished: ConcurrentFuture) -> None:
+            done.set_result(finished.result())
+            executor.wake()  # the executor re-runs waiting coroutines only when woken
+
+        future.add_done_callback(hand_over)
+        return await done
+
+    async def _on_sdo_read(self, request, response):
+        result = await self._completion(self.gateway.sdo_read(
+            request.node_id, request.index, request.subindex, request.max_size,
+            request.timeout))
+        response.success = result.success
+        response.abort_code = result.abort_code
+        response.message = result.message
+        response.data = list(result.data)
+        return response
+
+    async def _on_sdo_write(self, request, response):
+        result = await self._completion(self.gateway.sdo_write(
+            request.node_id, request.index, request.subindex, bytes(request.data),
+            request.timeout))
+        response.success = result.success
+        response.abort_code = result.abort_code
+        response.message = result.message
+        return response
+
+    def _on_nmt_command(self, request, response):
+        result = self.gateway.nmt_command(request.node_id, request.command)
+        response.success = result.success
+        response.message = result.message
+        return response
+
+    def _on_nmt_state(self, request, response):
+        if not 1 <= request.node_id <= 127:
+            response.success = False
+            response.state = NmtState.Response.NOT_DETECTED
+            response.state_name = state_name(response.state)
+            response.last_seen_age = -1.0
+            response.message = f'node_id {request.node_id} is out of range: allowed 1..127'
+            return response
+        status = self.gateway.monitor.status(request.node_id)
+        response.success = True
+        response.state = status.state
+        response.state_name = status.state_name
+        response.last_seen_age = status.last_seen_age
+        return response
+
+    async def _on_plc_mailbox(self, request, response):
+        response.registers, response.message = await self._mailbox.execute(
+            request.format, list(request.registers))
+        return response
+
+    def _publish_states(self) -> None:
+        message = NodeStates(stamp=self.get_clock().now().to_msg())
+        message.nodes = [
+            NodeState(node_id=status.node_id, state=status.state,
+                      state_name=status.state_name,
+                      last_seen=_time(status.last_seen) if status.last_seen else Time())
+            for status in self.gateway.monitor.statuses()]
+        self._states_publisher.publish(message)
+
+
+def main(args=None) -> int:
+    """Run the gateway node until interrupted."""
+    rclpy.init(args=args)
+    try:
+        node = CbcanNode()
+    except Exception as error:  # noqa: BLE001 - a configuration error ends the process cleanly
+        print(f'cbcan_node: cannot start: {error}', file=sys.stderr)
+        rclpy.try_shutdown()
+        return 1
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

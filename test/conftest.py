@@ -1,0 +1,164 @@
+"""Shared test harness: the gateway node in-process on a private virtual bus, with rclpy clients.
+
+Every gateway gets its own python-can ``virtual`` channel and the whole session its own
+ROS_DOMAIN_ID (set before rclpy starts), so parallel runs never hear each other.
+"""
+
+import os
+import random
+import threading
+import time
+import uuid
+
+os.environ['ROS_DOMAIN_ID'] = str(random.randint(1, 100))
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+import can  # noqa: E402
+import pytest  # noqa: E402
+import rclpy  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+
+from cbcan_ros.msg import NodeStates  # noqa: E402
+from cbcan_ros.node import CbcanNode, NODE_STATES_QOS, SERVICE_QOS  # noqa: E402
+from cbcan_ros.srv import (  # noqa: E402
+    NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite)
+
+SERVICE_TYPES = {
+    'sdo_read': SdoRead,
+    'sdo_write': SdoWrite,
+    'nmt_command': NmtCommand,
+    'nmt_state': NmtState,
+    'plc_mailbox': RegisterMailbox,
+}
+
+DEFAULT_DEVICES = [2, 3, 5]
+
+
+def wait_until(condition, timeout: float, what: str):
+    """Wait for ``condition()`` to become truthy, failing the test after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f'timed out after {timeout} s waiting for {what}')
+        time.sleep(0.005)
+
+
+def wait_for_future(future, timeout: float):
+    """Wait for an rclpy future: on its done-callback, and on done() for the known race."""
+    finished = threading.Event()
+    future.add_done_callback(lambda _: finished.set())
+    deadline = time.monotonic() + timeout
+    while not future.done():
+        if time.monotonic() > deadline:
+            raise AssertionError(f'no answer within {timeout} s')
+        finished.wait(0.01)
+    return future.result()
+
+
+class Harness:
+    """The gateway node under test, its simulated devices, a raw view of the bus, clients."""
+
+    def __init__(self, parameters: dict):
+        self.channel = f'test-{uuid.uuid4().hex[:8]}'
+        overrides = {'can.interface': 'virtual', 'can.channel': self.channel,
+                     'simulation.devices': DEFAULT_DEVICES}
+        overrides.update(parameters)
+        self.node = CbcanNode(parameter_overrides=[
+            Parameter(name, value=value) for name, value in overrides.items()])
+        self.client_node = rclpy.create_node(f'test_client_{uuid.uuid4().hex[:8]}')
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.client_node)
+        self._clients = {}
+        self.states = []
+        self._states_lock = threading.Lock()
+        self.client_node.create_subscription(NodeStates, '/cbcan/node_states',
+                                             self._on_states, NODE_STATES_QOS)
+        self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
+        self._spinner.start()
+
+    def device(self, node_id: int):
+        """Return the simulated device with ``node_id``."""
+        return next(d for d in self.node._simulated if d.node_id == node_id)
+
+    def client(self, service: str):
+        """Return (creating once) a client of the gateway's ``service``."""
+        if service not in self._clients:
+            client = self.client_node.create_client(SERVICE_TYPES[service],
+                                                    f'/cbcan/{service}', qos_profile=SERVICE_QOS)
+            assert client.wait_for_service(timeout_sec=10.0), f'{service} not available'
+            self._clients[service] = client
+        return self._clients[service]
+
+    def call(self, service: str, wait: float = 10.0, **fields):
+        """Call a gateway service with the request ``fields`` and return the response."""
+        request = SERVICE_TYPES[service].Request(**fields)
+        return wait_for_future(self.client(service).call_async(request), wait)
+
+    def call_async(self, service: str, **fields):
+        """Send a request without waiting; returns the rclpy future."""
+        return self.client(service).call_async(SERVICE_TYPES[service].Request(**fields))
+
+    def raw_bus(self) -> can.BusABC:
+        """Open a raw python-can bus on the gateway's virtual channel (caller shuts it down)."""
+        return can.Bus(interface='virtual', channel=self.channel)
+
+    def _on_states(self, message) -> None:
+        with self._states_lock:
+            self.states.append(message)
+
+    def latest_states(self):
+        """Return {node_id: state_name} of the latest NodeStates message, or None."""
+        with self._states_lock:
+            if not self.states:
+                return None
+            return {n.node_id: n.state_name for n in self.states[-1].nodes}
+
+    def wait_for_states(self, expected: dict, timeout: float = 5.0):
+        """Wait until the topic shows every node in ``expected`` ({id: state_name})."""
+        def matches():
+            latest = self.latest_states()
+            return latest is not None and all(
+                latest.get(node_id) == name for node_id, name in expected.items())
+        return wait_until(matches, timeout, f'node states {expected} on the topic '
+                                            f'(last seen {self.latest_states()})')
+
+    def close(self) -> None:
+        """Stop spinning, destroy the nodes and close the bus."""
+        self.executor.shutdown(timeout_sec=2.0)
+        self._spinner.join(timeout=5.0)
+        self.client_node.destroy_node()
+        self.node.destroy_node()
+
+
+@pytest.fixture(scope='session', autouse=True)
+def ros_context():
+    """Start rclpy once for the whole session."""
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+@pytest.fixture
+def make_gateway():
+    """Return a factory: ``make_gateway(**parameters)`` starts a gateway node on its own bus."""
+    harnesses = []
+
+    def factory(**parameters):
+        harness = Harness({name.replace('__', '.'): value for name, value in parameters.items()})
+        harnesses.append(harness)
+        return harness
+
+    yield factory
+    for harness in harnesses:
+        harness.close()
+
+
+@pytest.fixture
+def gateway(make_gateway):
+    """A gateway node with simulated devices 2, 3 and 5 on a private virtual bus."""
+    return make_gateway()
