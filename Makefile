@@ -60,7 +60,7 @@ test: build
 	$(ROS_ENV) pytest -q $(ROOT)/test $(ARGS)
 
 run: build
-	$(ROS_ENV) cbcan_node --ros-args --params-file $(ROOT)/config/simulation.yaml $(ARGS)
+	$(ROS_ENV) cbcan_node --ros-args -r __ns:=/can0 --params-file $(ROOT)/config/simulation.yaml $(ARGS)
 
 cli: build
 	$(ROS_ENV) cbcan_cli $(ARGS)

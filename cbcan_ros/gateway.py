@@ -15,7 +15,14 @@ from canopen import objectdictionary as od
 
 from . import nmt
 from .sdo import (
-    check_node_id, check_request, check_size, resolved, run_guarded, SdoChannel, SdoResult)
+    check_node_id,
+    check_request,
+    check_size,
+    resolved,
+    run_guarded,
+    SdoChannel,
+    SdoResult,
+)
 
 LOGGER = logging.getLogger(__name__)
 

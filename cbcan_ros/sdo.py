@@ -52,7 +52,7 @@ class SdoResult:
         return cls(False, message=message)
 
 
-def check_node_id(node_id: int, allowed: str = '0..127 (0 = the gateway\'s own dictionary)',
+def check_node_id(node_id: int, allowed: str = "0..127 (0 = the gateway's own dictionary)",
                   lowest: int = 0) -> Optional[str]:
     """Return why ``node_id`` is not allowed, or None."""
     if not lowest <= node_id <= MAX_NODE_ID:

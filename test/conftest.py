@@ -21,8 +21,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 
 from cbcan_ros.msg import NodeStates  # noqa: E402
 from cbcan_ros.node import CbcanNode, NODE_STATES_QOS, SERVICE_QOS  # noqa: E402
-from cbcan_ros.srv import (  # noqa: E402
-    NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite)
+from cbcan_ros.srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite  # noqa: E402
 
 SERVICE_TYPES = {
     'sdo_read': SdoRead,
@@ -160,5 +159,5 @@ def make_gateway():
 
 @pytest.fixture
 def gateway(make_gateway):
-    """A gateway node with simulated devices 2, 3 and 5 on a private virtual bus."""
+    """Start a gateway node with simulated devices 2, 3 and 5 on a private virtual bus."""
     return make_gateway()

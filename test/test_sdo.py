@@ -180,7 +180,7 @@ def test_invalid_request_is_refused_before_the_bus(gateway, service, fields, fie
 
 
 def test_short_frame_from_a_misbehaving_device_is_an_error_answer(gateway):
-    """canopen raises struct.error for a 2-byte SDO response; the node must survive it."""
+    """A 2-byte SDO response makes canopen raise struct.error; the node must survive it."""
     bus = gateway.raw_bus()
     stop = threading.Event()
 
