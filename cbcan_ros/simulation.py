@@ -14,6 +14,7 @@ import can
 import canopen
 
 from . import nmt
+from .gateway import NOTIFIER_CYCLE
 
 SLOW_INDEX = 0x2200
 DOMAIN_INDEX = 0x2020
@@ -30,6 +31,7 @@ class SimulatedDevice:
         self.slow_read_delay = slow_read_delay
         self._bus_options = dict(interface=interface, channel=channel, **(bus_options or {}))
         self.network = canopen.Network()
+        self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
         self.node = canopen.LocalNode(node_id, eds_path)
         self.node.add_read_callback(self._on_read)
         self._guard_toggle = 0
