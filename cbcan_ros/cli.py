@@ -1,0 +1,435 @@
+"""Command-line client of the gateway services, for machines without the ``ros2`` CLI.
+
+Examples (the gateway started by ``make run`` is ``/can0/cbcan``)::
+
+    cbcan_cli sdo-read 5 0x1000
+    cbcan_cli sdo-write 5 0x2002 0 0x12345678 --type u32
+    cbcan_cli sdo-write 5 0x2021 0 hello --type str
+    cbcan_cli nmt 5 start
+    cbcan_cli state 5
+    cbcan_cli states
+    cbcan_cli --gateway /robot/can1/cbcan mailbox cbcan 0x0001 ...
+
+Exit status: 0 on success, 1 when the gateway answered with an error (an SDO abort, a
+refused request), 2 when there is no usable gateway (not running, no answer) or the command
+line is wrong.
+"""
+
+import argparse
+import struct
+import sys
+import time
+from typing import List, Optional, Sequence
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+
+from .msg import NodeStates
+from .node import NODE_STATES_QOS, SERVICE_QOS
+from .srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite
+
+DEFAULT_GATEWAY = '/can0/cbcan'
+DEFAULT_WAIT = 5.0
+# Seconds an answer may take beyond the SDO timeout of the request (a segmented transfer of
+# a large object takes many SDO round trips, each with its own timeout).
+ANSWER_MARGIN = 30.0
+
+NMT_COMMANDS = {
+    'start': NmtCommand.Request.START,
+    'stop': NmtCommand.Request.STOP,
+    'preop': NmtCommand.Request.ENTER_PRE_OPERATIONAL,
+    'reset': NmtCommand.Request.RESET_NODE,
+    'reset-comm': NmtCommand.Request.RESET_COMMUNICATION,
+}
+
+INTEGER_TYPES = {
+    'u8': '<B', 'u16': '<H', 'u32': '<I',
+    'i8': '<b', 'i16': '<h', 'i32': '<i',
+}
+VALUE_TYPES = list(INTEGER_TYPES) + ['hex', 'str']
+
+
+class GatewayUnavailable(Exception):
+    """No gateway answers: it is not running, not discovered, or did not reply in time."""
+
+
+def _integer(text: str) -> int:
+    """Parse a number: decimal, or with a 0x/0o/0b prefix (as ``int(text, 0)``)."""
+    try:
+        return int(text, 0)
+    except ValueError:
+        pass
+    try:
+        return int(text, 10)  # '010': decimal with a leading zero, which int(x, 0) refuses
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f'{text!r} is not a number (decimal, or hex as 0x1A2B)') from None
+
+
+def _ranged(name: str, lowest: int, highest: int, hex_digits: int = 0):
+    """Return an argparse type: an integer in ``lowest..highest``."""
+    def parse(text: str) -> int:
+        value = _integer(text)
+        if not lowest <= value <= highest:
+            shown = (f'0x{lowest:0{hex_digits}X}..0x{highest:0{hex_digits}X}' if hex_digits
+                     else f'{lowest}..{highest}')
+            raise argparse.ArgumentTypeError(f'{name} {text} is out of range: allowed {shown}')
+        return value
+    parse.__name__ = name  # argparse names the type in its messages
+    return parse
+
+
+def _seconds(text: str) -> float:
+    """Parse an SDO timeout in seconds: 0 (the gateway's sdo.timeout) up to 60."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number of seconds') from None
+    if not 0.0 <= value <= 60.0:
+        raise argparse.ArgumentTypeError(
+            f"timeout {text} is out of range: allowed 0 (the gateway's sdo.timeout) to 60 s")
+    return value
+
+
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number of seconds') from None
+    if not value > 0.0:
+        raise argparse.ArgumentTypeError(f'{text} must be more than 0 s')
+    return value
+
+
+def _nmt_command(text: str) -> int:
+    """Parse an NMT command: a name (start, stop, preop, reset, reset-comm) or its number."""
+    name = text.lower()
+    if name in NMT_COMMANDS:
+        return NMT_COMMANDS[name]
+    try:
+        value = _integer(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f'{text!r} is not an NMT command: use {", ".join(NMT_COMMANDS)} or a number'
+        ) from None
+    if not 0 <= value <= 255:
+        raise argparse.ArgumentTypeError(f'NMT command {text} is out of range: allowed 0..255')
+    return value
+
+
+_node = _ranged('node', 0, 127)
+_index = _ranged('index', 0, 0xFFFF, 4)
+_subindex = _ranged('subindex', 0, 0xFF, 2)
+_word = _ranged('word', 0, 0xFFFF, 4)
+
+
+def encode_value(words: Sequence[str], value_type: str) -> bytes:
+    """Turn the VALUE words of sdo-write into the bytes to write (little-endian numbers).
+
+    Raises ValueError with a message for the user when the value does not fit the type.
+    """
+    if value_type == 'str':
+        data = ' '.join(words).encode('utf-8')
+    elif value_type == 'hex':
+        digits = ''.join(words).replace(':', '').replace(',', '').replace(' ', '')
+        if digits.lower().startswith('0x'):
+            raise ValueError(
+                f'{" ".join(words)!r}: --type hex takes the bytes as on the bus, e.g. '
+                f'78563412 or "78 56 34 12"; for a number give --type u32 (or u8, u16, i32...)')
+        try:
+            data = bytes.fromhex(digits)
+        except ValueError:
+            raise ValueError(f'{" ".join(words)!r} is not hex bytes (e.g. 78563412 or '
+                             f'"78 56 34 12")') from None
+    else:
+        if len(words) != 1:
+            raise ValueError(f'--type {value_type} takes one number, got {len(words)} words')
+        try:
+            number = _integer(words[0])
+        except argparse.ArgumentTypeError as error:
+            raise ValueError(str(error)) from None
+        code = INTEGER_TYPES[value_type]
+        try:
+            data = struct.pack(code, number)
+        except struct.error:
+            bits = struct.calcsize(code) * 8
+            if value_type.startswith('u'):
+                allowed = f'0..{(1 << bits) - 1}'
+            else:
+                allowed = f'{-(1 << (bits - 1))}..{(1 << (bits - 1)) - 1}'
+            raise ValueError(f'{words[0]} does not fit {value_type}: allowed {allowed}') from None
+    if not data:
+        raise ValueError('the value is empty: write at least 1 byte')
+    return data
+
+
+def describe_data(data: bytes) -> List[str]:
+    """Return the lines sdo-read prints for ``data``: hex bytes, number, text."""
+    size = len(data)
+    hex_bytes = ' '.join(f'{byte:02X}' for byte in data) if data else '(none)'
+    lines = [f'data:  {hex_bytes}  ({size} byte{"" if size == 1 else "s"})']
+    if size in (1, 2, 4):
+        value = int.from_bytes(data, 'little')
+        lines.append(f'value: 0x{value:0{size * 2}X} = {value}  (unsigned, little-endian)')
+    if data and all(0x20 <= byte <= 0x7E for byte in data):
+        lines.append(f'text:  {data.decode("ascii")!r}')
+    return lines
+
+
+class Client:
+    """One rclpy node in a private context, calling the services of one gateway."""
+
+    def __init__(self, gateway: str, wait: float):
+        self.gateway = gateway
+        self.wait = wait
+        self._context = rclpy.Context()
+        rclpy.init(args=[], context=self._context)
+        self._node = rclpy.create_node('cbcan_cli', context=self._context,
+                                       start_parameter_services=False,
+                                       enable_rosout=False)
+        self._executor = SingleThreadedExecutor(context=self._context)
+        self._executor.add_node(self._node)
+
+    def close(self) -> None:
+        """Destroy the node and shut the private context down."""
+        self._executor.shutdown(timeout_sec=1.0)
+        self._node.destroy_node()
+        rclpy.try_shutdown(context=self._context)
+
+    def missing(self) -> GatewayUnavailable:
+        """Return the error for a gateway that cannot be found."""
+        return GatewayUnavailable(f'no gateway at {self.gateway}: is cbcan_node running? '
+                                  f'(waited {self.wait:g} s; check --gateway and '
+                                  f'ROS_DOMAIN_ID)')
+
+    def call(self, service_type, service: str, request, answer_within: float):
+        """Call ``gateway/service`` and return the response; raise GatewayUnavailable."""
+        client = self._node.create_client(service_type, f'{self.gateway}/{service}',
+                                          qos_profile=SERVICE_QOS)
+        if not client.wait_for_service(timeout_sec=self.wait):
+            raise self.missing()
+        future = client.call_async(request)
+        self._executor.spin_until_future_complete(future, timeout_sec=answer_within)
+        if not future.done():
+            future.cancel()
+            raise GatewayUnavailable(
+                f'{self.gateway}/{service} did not answer within {answer_within:g} s')
+        return future.result()
+
+    def receive_states(self):
+        """Return one NodeStates message from the latched ``node_states`` topic."""
+        received = []
+        self._node.create_subscription(NodeStates, f'{self.gateway}/node_states',
+                                       received.append, NODE_STATES_QOS)
+        deadline = time.monotonic() + self.wait
+        while not received:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise self.missing()
+            self._executor.spin_once(timeout_sec=min(remaining, 0.1))
+        return received[-1]
+
+
+def _answer_within(timeout: float) -> float:
+    return (timeout or 60.0) + ANSWER_MARGIN
+
+
+def _failed(response) -> int:
+    if response.abort_code:
+        code = f'0x{response.abort_code:08X}'
+        # The gateway's message names the code already ("0x06020000 NOT_EXIST: ...").
+        detail = response.message if code in response.message else (
+            f'{code}: {response.message}')
+        print(f'error: SDO abort {detail}', file=sys.stderr)
+    else:
+        print(f'error: {response.message}', file=sys.stderr)
+    return 1
+
+
+def _object(args) -> str:
+    return f'node {args.node} object 0x{args.index:04X}:{args.subindex:02X}'
+
+
+def cmd_sdo_read(client: Client, args) -> int:
+    """Read an object and print its bytes, number and text."""
+    response = client.call(SdoRead, 'sdo_read', SdoRead.Request(
+        node_id=args.node, index=args.index, subindex=args.subindex,
+        max_size=args.max_size, timeout=args.timeout), _answer_within(args.timeout))
+    if not response.success:
+        return _failed(response)
+    print('\n'.join(describe_data(bytes(response.data))))
+    return 0
+
+
+def cmd_sdo_write(client: Client, args) -> int:
+    """Write an object."""
+    response = client.call(SdoWrite, 'sdo_write', SdoWrite.Request(
+        node_id=args.node, index=args.index, subindex=args.subindex,
+        data=list(args.data), timeout=args.timeout), _answer_within(args.timeout))
+    if not response.success:
+        return _failed(response)
+    print(f'ok: wrote {len(args.data)} byte{"" if len(args.data) == 1 else "s"} '
+          f'({args.data.hex(" ").upper()}) to {_object(args)}')
+    return 0
+
+
+def cmd_nmt(client: Client, args) -> int:
+    """Send an NMT command."""
+    response = client.call(NmtCommand, 'nmt_command', NmtCommand.Request(
+        node_id=args.node, command=args.command), client.wait + ANSWER_MARGIN)
+    if not response.success:
+        print(f'error: {response.message}', file=sys.stderr)
+        return 1
+    target = 'all nodes' if args.node == 0 else f'node {args.node}'
+    print(f'ok: sent NMT command {args.command} to {target}')
+    return 0
+
+
+def _age(seconds: float) -> str:
+    return 'never' if seconds < 0 else f'{seconds:.2f} s ago'
+
+
+def cmd_state(client: Client, args) -> int:
+    """Print a node's NMT state as last reported by the node."""
+    response = client.call(NmtState, 'nmt_state', NmtState.Request(node_id=args.node),
+                           client.wait + ANSWER_MARGIN)
+    if not response.success:
+        print(f'error: {response.message}', file=sys.stderr)
+        return 1
+    print(f'node {args.node}: {response.state_name} (last seen {_age(response.last_seen_age)})')
+    return 0
+
+
+def cmd_states(client: Client, args) -> int:
+    """Print the table of every known node's state from the node_states topic."""
+    message = client.receive_states()
+    if not message.nodes:
+        print('no nodes known (none expected, none heard)')
+        return 0
+    now = time.time()
+    print(f'{"node":>4}  {"state":<16}  last seen')
+    for node in message.nodes:
+        seen = node.last_seen.sec + node.last_seen.nanosec * 1e-9
+        age = max(0.0, now - seen) if seen else -1.0
+        print(f'{node.node_id:>4}  {node.state_name:<16}  {_age(age)}')
+    return 0
+
+
+def cmd_mailbox(client: Client, args) -> int:
+    """Execute one PLC register block and print the block as returned."""
+    response = client.call(RegisterMailbox, 'plc_mailbox', RegisterMailbox.Request(
+        format=args.format, registers=args.words), _answer_within(0.0))
+    words = list(response.registers)
+    for offset in range(0, len(words), 8):
+        row = words[offset:offset + 8]
+        if args.decimal:
+            print(f'{offset:>3}: ' + ' '.join(f'{word:>5}' for word in row))
+        else:
+            print(f'{offset:>3}: ' + ' '.join(f'0x{word:04X}' for word in row))
+    if response.message:
+        print(f'error: {response.message}', file=sys.stderr)
+        return 1
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the argument parser of ``cbcan_cli``."""
+    parser = argparse.ArgumentParser(
+        prog='cbcan_cli',
+        description='Call the services of a cbcan_ros CANopen gateway. Numbers take '
+                    'decimal or 0x hex.',
+        epilog='Exit status: 0 ok, 1 the gateway answered with an error, 2 no gateway or a '
+               'wrong command line.')
+    parser.add_argument('--gateway', default=DEFAULT_GATEWAY,
+                        help='the gateway node: namespace and name (default %(default)s)')
+    parser.add_argument('--wait', type=_positive_seconds, default=DEFAULT_WAIT,
+                        help='seconds to wait for the gateway to be found (default '
+                             '%(default)g)')
+    commands = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
+
+    read = commands.add_parser('sdo-read', help='read an object (SDO upload)',
+                               description='Read an object and print its bytes; 1, 2 and '
+                                           '4 bytes also as an unsigned little-endian '
+                                           'number, printable ASCII also as text.')
+    read.add_argument('node', type=_node, metavar='NODE', help='node id 1..127 (0 = gateway)')
+    read.add_argument('index', type=_index, metavar='INDEX', help='object index, e.g. 0x1000')
+    read.add_argument('subindex', type=_subindex, nargs='?', default=0, metavar='SUBINDEX',
+                      help='sub-index (default 0)')
+    read.add_argument('--max-size', type=_ranged('max-size', 0, 0xFFFFFFFF), default=0,
+                      metavar='N', help='largest answer accepted in bytes (default 0: no '
+                                        'limit)')
+    read.add_argument('--timeout', type=_seconds, default=0.0, metavar='S',
+                      help="SDO timeout in seconds (default 0: the gateway's sdo.timeout)")
+    read.set_defaults(run=cmd_sdo_read)
+
+    write = commands.add_parser('sdo-write', help='write an object (SDO download)',
+                                description='Write an object. The value is hex bytes as on '
+                                            'the bus by default (78563412 or "78 56 34 12"); '
+                                            'numbers are written little-endian.')
+    write.add_argument('node', type=_node, metavar='NODE', help='node id 1..127 (0 = gateway)')
+    write.add_argument('index', type=_index, metavar='INDEX', help='object index, e.g. 0x2002')
+    write.add_argument('subindex', type=_subindex, metavar='SUBINDEX', help='sub-index')
+    write.add_argument('value', nargs='+', metavar='VALUE',
+                       help='the value; several words are joined (hex: without spaces, '
+                            'str: with one space)')
+    write.add_argument('--type', dest='value_type', choices=VALUE_TYPES, default='hex',
+                       help='how to read VALUE (default hex)')
+    write.add_argument('--timeout', type=_seconds, default=0.0, metavar='S',
+                       help="SDO timeout in seconds (default 0: the gateway's sdo.timeout)")
+    write.set_defaults(run=cmd_sdo_write)
+
+    nmt = commands.add_parser('nmt', help='send an NMT command',
+                              description='Send an NMT command to a node (0 = all nodes).')
+    nmt.add_argument('node', type=_node, metavar='NODE', help='node id 1..127, 0 = all nodes')
+    nmt.add_argument('command', type=_nmt_command, metavar='COMMAND',
+                     help=f'{"|".join(NMT_COMMANDS)} or the command byte')
+    nmt.set_defaults(run=cmd_nmt)
+
+    state = commands.add_parser('state', help="print a node's NMT state",
+                                description='Print the NMT state a node last reported.')
+    state.add_argument('node', type=_node, metavar='NODE', help='node id 1..127')
+    state.set_defaults(run=cmd_state)
+
+    states = commands.add_parser('states', help='print the state of every known node',
+                                 description='Print the latest node_states message as a '
+                                             'table.')
+    states.set_defaults(run=cmd_states)
+
+    mailbox = commands.add_parser('mailbox', help='execute one PLC register block',
+                                  description='Execute one PLC mailbox block (all its '
+                                              'registers) and print the block returned.')
+    mailbox.add_argument('format', metavar='FORMAT', help='cbcan or me3can')
+    mailbox.add_argument('words', type=_word, nargs='+', metavar='WORD',
+                         help='the registers, 0..65535 (decimal or 0x hex)')
+    mailbox.add_argument('--decimal', action='store_true', help='print words in decimal')
+    mailbox.set_defaults(run=cmd_mailbox)
+    return parser
+
+
+def _gateway_name(name: str) -> str:
+    name = name.strip().rstrip('/')
+    return name if name.startswith('/') else f'/{name}'
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Run one command of ``cbcan_cli``; return the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == 'sdo-write':
+        try:
+            args.data = encode_value(args.value, args.value_type)
+        except ValueError as error:
+            parser.error(f'sdo-write: {error}')
+    args.gateway = _gateway_name(args.gateway)
+    client = None
+    try:
+        client = Client(args.gateway, args.wait)
+        return args.run(client, args)
+    except GatewayUnavailable as error:
+        print(f'error: {error}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        if client is not None:
+            client.close()

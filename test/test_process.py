@@ -1,0 +1,227 @@
+"""The installed ``cbcan_node`` as a separate process, as users run it, over udp_multicast.
+
+The simulated devices run in this test process on the same udp_multicast channel, so every
+SDO, NMT and heartbeat frame crosses a process boundary, and so does every service call.
+
+python-can's udp_multicast sockets bind to the port on every address: on Linux a socket hears
+every group any socket of the machine joined on that port. A random group alone therefore does
+not keep parallel runs apart; a random port does. The node has no parameter for the port, so
+the child gets it through python-can's own environment configuration (``CAN_CONFIG``).
+"""
+
+import json
+import os
+import pathlib
+import random
+import shutil
+import signal
+import subprocess
+import tempfile
+import threading
+import uuid
+
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+
+from cbcan_ros.msg import NodeStates
+from cbcan_ros.node import NODE_STATES_QOS, SERVICE_QOS
+from cbcan_ros.simulation import SimulatedDevice
+from cbcan_ros.srv import NmtCommand, NmtState, SdoRead, SdoWrite
+
+from conftest import wait_for_future, wait_until
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+EDS = str(ROOT / 'config' / 'simulated_device.eds')
+DEVICES = (2, 5)
+START_TIMEOUT = 15.0  # process start, parameter check, bus and DDS discovery
+STOP_TIMEOUT = 5.0
+
+
+def executable(name: str) -> str:
+    """Return the path of an installed executable (tools/ros-env puts them on PATH)."""
+    path = shutil.which(name)
+    assert path, f'{name} is not on PATH: run the tests through tools/ros-env after make build'
+    return path
+
+
+def random_bus():
+    """Return (IPv4 multicast group, UDP port) for this test run only."""
+    group = f'239.{random.randint(1, 254)}.{random.randint(0, 255)}.{random.randint(1, 254)}'
+    return group, random.randint(20000, 40000)
+
+
+class NodeProcess:
+    """``cbcan_node`` in a child process; its output goes to a file, read on failure."""
+
+    def __init__(self, arguments, port: int):
+        self._output = tempfile.TemporaryFile(mode='w+')
+        env = dict(os.environ, CAN_CONFIG=json.dumps({'port': port}))
+        self.process = subprocess.Popen([executable('cbcan_node'), '--ros-args', *arguments],
+                                        stdout=self._output, stderr=subprocess.STDOUT,
+                                        env=env, text=True)
+
+    def output(self) -> str:
+        """Return everything the process printed so far."""
+        self._output.flush()
+        self._output.seek(0)
+        return self._output.read()
+
+    def wait(self, timeout: float) -> int:
+        """Wait for the process to end by itself; fail the test after ``timeout`` seconds."""
+        try:
+            return self.process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f'cbcan_node still running after {timeout} s:\n'
+                                 f'{self.output()}') from None
+
+    def stop(self) -> None:
+        """Interrupt the process as Ctrl-C does, then kill it if it does not end in time."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(STOP_TIMEOUT)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(STOP_TIMEOUT)
+        self._output.close()
+
+
+@pytest.fixture
+def start_node():
+    """Return a factory ``start_node(arguments, port)``; every process is ended afterwards."""
+    processes = []
+
+    def factory(arguments, port: int) -> NodeProcess:
+        process = NodeProcess(arguments, port)
+        processes.append(process)
+        return process
+
+    yield factory
+    for process in processes:
+        process.stop()
+
+
+@pytest.fixture
+def client_node():
+    """Yield an rclpy node of this process, spun by an executor in a thread of its own."""
+    node = rclpy.create_node(f'process_test_{uuid.uuid4().hex[:8]}')
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    yield node
+    executor.shutdown(timeout_sec=2.0)
+    spinner.join(timeout=5.0)
+    node.destroy_node()
+
+
+@pytest.fixture
+def devices():
+    """Return a factory ``devices(group, port)`` starting simulated devices 2 and 5."""
+    started = []
+
+    def factory(group: str, port: int):
+        for node_id in DEVICES:
+            device = SimulatedDevice(node_id, EDS, 'udp_multicast', group,
+                                     bus_options={'port': port})
+            device.start()
+            started.append(device)
+        return {device.node_id: device for device in started}
+
+    yield factory
+    for device in started:
+        device.stop()
+
+
+def call(client, request, what: str, gateway: NodeProcess, timeout: float = 10.0):
+    """Call a service and return the response, with the node's output on failure."""
+    try:
+        return wait_for_future(client.call_async(request), timeout)
+    except AssertionError as error:
+        raise AssertionError(f'{what}: {error}\ncbcan_node output:\n{gateway.output()}') \
+            from None
+
+
+def test_installed_node_serves_sdo_nmt_and_the_cli_over_udp_multicast(
+        start_node, client_node, devices):
+    group, port = random_bus()
+    namespace = f'/proc{uuid.uuid4().hex[:8]}'
+    gateway_name = f'{namespace}/cbcan'
+    simulated = devices(group, port)
+    gateway = start_node(['-r', f'__ns:={namespace}',
+                          '-p', 'can.interface:=udp_multicast',
+                          '-p', f'can.channel:={group}',
+                          '-p', 'nodes:=[2, 5]',
+                          '-p', 'heartbeat.timeout:=1.0',
+                          '-p', 'state_publish_period:=0.2'], port)
+
+    states = []
+    client_node.create_subscription(NodeStates, f'{gateway_name}/node_states',
+                                    states.append, NODE_STATES_QOS)
+
+    def client(service_type, service: str):
+        made = client_node.create_client(service_type, f'{gateway_name}/{service}',
+                                         qos_profile=SERVICE_QOS)
+        if not made.wait_for_service(timeout_sec=START_TIMEOUT):
+            raise AssertionError(
+                f'{gateway_name}/{service} did not appear within {START_TIMEOUT} s '
+                f'(exit status {gateway.process.poll()}):\n{gateway.output()}')
+        return made
+
+    def latest_states():
+        return {n.node_id: n.state_name for n in states[-1].nodes} if states else {}
+
+    sdo_read = client(SdoRead, 'sdo_read')
+    sdo_write = client(SdoWrite, 'sdo_write')
+    nmt_command = client(NmtCommand, 'nmt_command')
+    nmt_state = client(NmtState, 'nmt_state')
+
+    # Heartbeats of the devices in this process reach the gateway in the other one.
+    wait_until(lambda: latest_states() == {2: 'PRE_OPERATIONAL', 5: 'PRE_OPERATIONAL'},
+               10.0, f'both devices PRE_OPERATIONAL on the topic (last {latest_states()})')
+
+    response = call(sdo_read, SdoRead.Request(node_id=5, index=0x1000),
+                    'sdo_read 5 0x1000', gateway)
+    assert response.success, response.message
+    assert bytes(response.data) == bytes([0x92, 0x01, 0x02, 0x00])
+
+    written = bytes([0xEF, 0xBE, 0xAD, 0xDE])
+    response = call(sdo_write, SdoWrite.Request(
+        node_id=5, index=0x2002, subindex=0, data=list(written)), 'sdo_write 5 0x2002', gateway)
+    assert response.success, response.message
+    assert simulated[5].node.sdo[0x2002].raw == 0xDEADBEEF  # it reached the device itself
+    response = call(sdo_read, SdoRead.Request(node_id=5, index=0x2002),
+                    'sdo_read 5 0x2002', gateway)
+    assert (response.success, bytes(response.data)) == (True, written), response.message
+
+    response = call(nmt_command, NmtCommand.Request(
+        node_id=5, command=NmtCommand.Request.START), 'nmt_command 5 START', gateway)
+    assert response.success, response.message
+    wait_until(lambda: latest_states() == {2: 'PRE_OPERATIONAL', 5: 'OPERATIONAL'}, 5.0,
+               f'node 5 OPERATIONAL on the topic (last {latest_states()})')
+    response = call(nmt_state, NmtState.Request(node_id=5), 'nmt_state 5',
+                    gateway)
+    assert (response.success, response.state_name) == (True, 'OPERATIONAL')
+    assert simulated[5].state == NmtState.Response.OPERATIONAL
+
+    cli = subprocess.run([executable('cbcan_cli'), '--gateway', gateway_name, '--wait', '15',
+                          'sdo-read', '5', '0x1000'],
+                         capture_output=True, text=True, timeout=30)
+    assert cli.returncode == 0, cli.stdout + cli.stderr
+    assert '92 01 02 00' in cli.stdout and '0x00020192' in cli.stdout, cli.stdout
+
+    gateway.stop()
+    assert gateway.process.returncode == 0, 'cbcan_node did not end cleanly on SIGINT'
+
+
+def test_out_of_range_node_id_parameter_ends_the_node_with_a_message(start_node):
+    group, port = random_bus()
+    gateway = start_node(['-r', f'__ns:=/proc{uuid.uuid4().hex[:8]}',
+                          '-p', 'can.interface:=udp_multicast',
+                          '-p', f'can.channel:={group}',
+                          '-p', 'nodes:=[2, 200]'], port)
+    status = gateway.wait(START_TIMEOUT)
+    output = gateway.output()
+    assert status != 0, f'cbcan_node exited with status 0 on a bad parameter:\n{output}'
+    assert 'nodes' in output and '200' in output and '1..127' in output, output
