@@ -24,6 +24,7 @@ from typing import List, Optional, Sequence
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
+from .mailbox import Cbcan, Me3can
 from .msg import NodeStates
 from .node import NODE_STATES_QOS, SERVICE_QOS
 from .srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite
@@ -315,10 +316,17 @@ def cmd_states(client: Client, args) -> int:
     return 0
 
 
+BLOCK_LENGTHS = {'cbcan': Cbcan.LENGTH, 'me3can': Me3can.LENGTH}
+
+
 def cmd_mailbox(client: Client, args) -> int:
     """Execute one PLC register block and print the block as returned."""
+    words = list(args.words)
+    length = BLOCK_LENGTHS.get(args.format or 'cbcan')
+    if length and len(words) < length:
+        words += [0] * (length - len(words))  # the unwritten registers of the PLC are 0
     response = client.call(RegisterMailbox, 'plc_mailbox', RegisterMailbox.Request(
-        format=args.format, registers=args.words), _answer_within(0.0))
+        format=args.format, registers=words), _answer_within(0.0))
     words = list(response.registers)
     for offset in range(0, len(words), 8):
         row = words[offset:offset + 8]
@@ -400,7 +408,8 @@ def build_parser() -> argparse.ArgumentParser:
                                               'registers) and print the block returned.')
     mailbox.add_argument('format', metavar='FORMAT', help='cbcan or me3can')
     mailbox.add_argument('words', type=_word, nargs='+', metavar='WORD',
-                         help='the registers, 0..65535 (decimal or 0x hex)')
+                         help='the registers from the first, 0..65535 (decimal or 0x hex); '
+                              'a shorter block is padded with zeros to its full length')
     mailbox.add_argument('--decimal', action='store_true', help='print words in decimal')
     mailbox.set_defaults(run=cmd_mailbox)
     return parser
