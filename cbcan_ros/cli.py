@@ -16,6 +16,7 @@ line is wrong.
 """
 
 import argparse
+import math
 import struct
 import sys
 import time
@@ -27,6 +28,7 @@ from rclpy.executors import SingleThreadedExecutor
 from .mailbox import Cbcan, Me3can
 from .msg import NodeStates
 from .node import NODE_STATES_QOS, SERVICE_QOS
+from .sdo import MAX_TIMEOUT
 from .srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite
 
 DEFAULT_GATEWAY = '/can0/cbcan'
@@ -80,23 +82,28 @@ def _ranged(name: str, lowest: int, highest: int, hex_digits: int = 0):
     return parse
 
 
-def _seconds(text: str) -> float:
-    """Parse an SDO timeout in seconds: 0 (the gateway's sdo.timeout) up to 60."""
+def _parse_seconds(text: str) -> float:
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f'{text!r} is not a number of seconds') from None
-    if not 0.0 <= value <= 60.0:
+    if math.isnan(value):
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number of seconds')
+    return value
+
+
+def _seconds(text: str) -> float:
+    """Parse an SDO timeout in seconds: 0 (the gateway's sdo.timeout) up to MAX_TIMEOUT."""
+    value = _parse_seconds(text)
+    if not 0.0 <= value <= MAX_TIMEOUT:
         raise argparse.ArgumentTypeError(
-            f"timeout {text} is out of range: allowed 0 (the gateway's sdo.timeout) to 60 s")
+            f"timeout {text} is out of range: allowed 0 (the gateway's sdo.timeout) "
+            f'to {MAX_TIMEOUT:g} s')
     return value
 
 
 def _positive_seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a number of seconds') from None
+    value = _parse_seconds(text)
     if not value > 0.0:
         raise argparse.ArgumentTypeError(f'{text} must be more than 0 s')
     return value
@@ -232,7 +239,7 @@ class Client:
 
 
 def _answer_within(timeout: float) -> float:
-    return (timeout or 60.0) + ANSWER_MARGIN
+    return (timeout or MAX_TIMEOUT) + ANSWER_MARGIN
 
 
 def _failed(response) -> int:
