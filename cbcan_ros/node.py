@@ -24,6 +24,7 @@ from .gateway import Gateway, GatewayConfig
 from .mailbox import Mailbox
 from .msg import NodeState, NodeStates
 from .nmt import state_name
+from .sdo import check_node_id
 from .simulation import SimulatedDevice
 from .srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite
 
@@ -205,12 +206,13 @@ class CbcanNode(Node):
         return response
 
     def _on_nmt_state(self, request, response):
-        if not 1 <= request.node_id <= 127:
+        problem = check_node_id(request.node_id, '1..127', lowest=1)
+        if problem:
             response.success = False
             response.state = NmtState.Response.NOT_DETECTED
             response.state_name = state_name(response.state)
             response.last_seen_age = -1.0
-            response.message = f'node_id {request.node_id} is out of range: allowed 1..127'
+            response.message = problem
             return response
         status = self.gateway.monitor.status(request.node_id)
         response.success = True
