@@ -206,7 +206,8 @@ def test_short_frame_from_a_misbehaving_device_is_an_error_answer(gateway):
 
 
 def test_slow_device_blocks_neither_other_devices_nor_the_executor(gateway):
-    slow = gateway.call_async('sdo_read', node_id=2, index=0x2200, subindex=0, timeout=2.0)
+    gateway.device(2).slow_read_delay = 2.0  # far longer than the other calls take, even loaded
+    slow = gateway.call_async('sdo_read', node_id=2, index=0x2200, subindex=0, timeout=5.0)
     fast = gateway.call('sdo_read', node_id=3, index=0x1000, subindex=0)
     state = gateway.call('nmt_state', node_id=3)
     assert fast.success and state.success
