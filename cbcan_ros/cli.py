@@ -28,7 +28,7 @@ from rclpy.executors import SingleThreadedExecutor
 from .mailbox import Cbcan, Me3can
 from .msg import NodeStates
 from .node import NODE_STATES_QOS, SERVICE_QOS
-from .sdo import MAX_TIMEOUT
+from .sdo import MAX_NODE_ID, MAX_TIMEOUT
 from .srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite
 
 DEFAULT_GATEWAY = '/can0/cbcan'
@@ -125,7 +125,7 @@ def _nmt_command(text: str) -> int:
     return value
 
 
-_node = _ranged('node', 0, 127)
+_node = _ranged('node', 0, MAX_NODE_ID)
 _index = _ranged('index', 0, 0xFFFF, 4)
 _subindex = _ranged('subindex', 0, 0xFF, 2)
 _word = _ranged('word', 0, 0xFFFF, 4)

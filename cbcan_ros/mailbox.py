@@ -14,14 +14,13 @@ Data bytes are packed into registers little-endian: byte 2k is the low byte of w
 import logging
 
 from . import abort_codes, nmt
-from .sdo import SdoResult
+from .sdo import MAX_NODE_ID
 
 LOGGER = logging.getLogger(__name__)
 
 Block = list[int]
 Answer = tuple[Block, str]
 
-MAX_NODE_ID = 127
 WORD = 0xFFFF
 
 # cbcan R3701: the commands are decimal; the hexadecimal look-alikes are accepted as aliases.
@@ -159,9 +158,6 @@ class Cbcan(_Translator):
                         f'SDO write of {size} bytes to {where} failed: {result.message}')
             return self._result(block, self.OK), ''
         result = await self._read(node_id, index, subindex, size)
-        if result.success and len(result.data) > size:
-            result = SdoResult.aborted(abort_codes.OUT_OF_MEMORY,
-                                       f'{len(result.data)} bytes, R3705 allows {size}')
         if not result.success:
             return (self._aborted(block, self._abort_code(result)),
                     f'SDO read of {where} failed: {result.message}')
