@@ -2,6 +2,8 @@
 
 Knows nothing of ROS. The ROS node (``node.py``) and the PLC mailbox (``mailbox.py``) are
 both thin layers over :class:`Gateway`, so there is exactly one SDO and one NMT code path.
+The bus itself is owned by a :class:`~cbcan_ros.bus.BusSupervisor`, which reopens it after
+any fault; the gateway answers every waiting call when the bus goes down or shuts down.
 """
 
 from concurrent.futures import Future
@@ -10,27 +12,34 @@ import logging
 import threading
 from typing import Dict, Tuple
 
+import can
 import canopen
 from canopen import objectdictionary as od
 
-from . import nmt
+from . import abort_codes, nmt
+from .bus import BusDown, BusStatus, BusSupervisor
 from .sdo import (
     check_node_id,
     check_request,
     check_size,
+    Deadlines,
     resolved,
     run_guarded,
     SdoChannel,
     SdoResult,
 )
+from .sdo_client import StrictSdoClient
+from .write_protection import WriteProtection
 
 LOGGER = logging.getLogger(__name__)
 
 VERSION = '0.1.0'
 
 # canopen's notifier thread polls the bus once a second by default, and closing the
-# network waits for that poll: a shorter cycle lets the node shut down at once.
+# network waits for that poll: a shorter cycle lets a simulated device stop at once.
 NOTIFIER_CYCLE = 0.05
+
+SHUTTING_DOWN = 'the gateway is shutting down'
 
 
 @dataclass(frozen=True)
@@ -46,15 +55,23 @@ class GatewayConfig:
     expected_nodes: Tuple[int, ...] = ()
     guarded_nodes: Tuple[int, ...] = ()
     guard_period: float = 1.0
+    queue_limit: int = 64
+    read_retries: int = 0
+    write_protection: WriteProtection = WriteProtection()
     bus_options: Dict[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class NmtResult:
-    """The answer to an NMT command."""
+    """The answer to an NMT command (``abort_code`` set when write protection refused it)."""
 
     success: bool
     message: str = ''
+    abort_code: int = 0
+
+
+def _is_sdo_abort(message: can.Message) -> bool:
+    return 0x600 <= message.arbitration_id <= 0x67F and message.data[:1] == b'\x80'
 
 
 def _variable(name, index, subindex, data_type, access, default):
@@ -100,70 +117,90 @@ def own_dictionary() -> canopen.LocalNode:
 class Gateway:
     """One CAN bus with its CANopen devices, as seen by the master.
 
-    SDO requests return ``concurrent.futures.Future`` objects that always resolve to an
-    :class:`SdoResult`; they never raise and never block the caller.
+    SDO requests return ``concurrent.futures.Future`` objects that always resolve to exactly
+    one :class:`SdoResult`, within the request's timeout; they never raise and never block
+    the caller.
     """
 
     def __init__(self, config: GatewayConfig):
         self.config = config
         self.network = canopen.Network()
-        self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
+        self.bus = BusSupervisor(self.network, self._open_bus,
+                                 f'{config.interface}:{config.channel}')
         self.dictionary = own_dictionary()
         self.monitor = nmt.HeartbeatMonitor(self.network, config.heartbeat_timeout,
                                             config.expected_nodes)
         self._guarding = nmt.NodeGuarding(self.network, config.guarded_nodes,
                                           config.guard_period)
+        self._deadlines = Deadlines()
         self._channels: Dict[int, SdoChannel] = {}
-        self._channels_lock = threading.Lock()
+        self._lock = threading.Lock()
+        self._closing = False
+        self.bus.add_listener(self._on_bus_change)
+
+    @property
+    def bus_status(self) -> BusStatus:
+        """Return whether the bus is up, why not, and how often it was reopened."""
+        return self.bus.status
 
     def start(self) -> None:
-        """Open the bus and start watching node states."""
-        options = dict(self.config.bus_options)
-        if self.config.bitrate:
-            options['bitrate'] = self.config.bitrate
-        self.network.connect(interface=self.config.interface, channel=self.config.channel,
-                             **options)
+        """Open the bus (or keep trying in the background) and watch node states."""
         self.monitor.start()
         self._guarding.start()
+        self.bus.start()
 
     def stop(self) -> None:
-        """Stop every worker and close the bus."""
+        """Answer every waiting call, abort running transfers, then close the bus.
+
+        From the first moment of shutdown no request frame is sent: the only frames that
+        may still go out are the aborts of transfers that were running.
+        """
+        with self._lock:
+            if self._closing:
+                return
+            self._closing = True
+            channels = list(self._channels.values())
+        self.bus.restrict_sending(_is_sdo_abort, SHUTTING_DOWN)
         self._guarding.stop()
-        self.monitor.stop()
-        with self._channels_lock:
-            channels, self._channels = list(self._channels.values()), {}
         for channel in channels:
-            channel.stop()
-        self.network.disconnect()
+            channel.close(SHUTTING_DOWN, abort_codes.DEVICE_STATE)
+        for channel in channels:
+            channel.join(1.0)
+        self.monitor.stop()
+        self._deadlines.stop()
+        self.bus.stop()
 
     def sdo_read(self, node_id: int, index: int, subindex: int, max_size: int = 0,
                  timeout: float = 0.0) -> 'Future[SdoResult]':
         """Read ``index:subindex`` of ``node_id`` (0 = the gateway's own dictionary)."""
         problem = check_request(node_id, index, subindex, timeout)
         if problem:
-            return resolved(SdoResult.invalid(problem))
+            return resolved(SdoResult.failed(problem))
         if not 0 <= max_size <= 0xFFFFFFFF:
-            return resolved(SdoResult.invalid(
+            return resolved(SdoResult.failed(
                 f'max_size {max_size} is out of range: allowed 0 (no limit) to 4294967295'))
         if node_id == 0:
             return resolved(run_guarded(lambda: self._read_own(index, subindex, max_size)))
-        return self._channel(node_id).read(index, subindex, max_size,
-                                           timeout or self.config.sdo_timeout)
+        return self._channel_for(node_id, lambda channel: channel.read(
+            index, subindex, max_size, timeout or self.config.sdo_timeout))
 
     def sdo_write(self, node_id: int, index: int, subindex: int, data: bytes,
                   timeout: float = 0.0) -> 'Future[SdoResult]':
         """Write ``data`` to ``index:subindex`` of ``node_id`` (0 = own dictionary)."""
         problem = check_request(node_id, index, subindex, timeout)
         if problem:
-            return resolved(SdoResult.invalid(problem))
+            return resolved(SdoResult.failed(problem))
         if not data:
-            return resolved(SdoResult.invalid('data is empty: write at least 1 byte'))
+            return resolved(SdoResult.failed('data is empty: write at least 1 byte'))
+        refusal = self.config.write_protection.refuses_write(node_id, index)
+        if refusal:
+            return resolved(SdoResult.aborted(abort_codes.LOCAL_CONTROL, refusal))
         data = bytes(data)
         if node_id == 0:
             return resolved(run_guarded(
                 lambda: self.dictionary.set_data(index, subindex, data, check_writable=True)))
-        return self._channel(node_id).write(index, subindex, data,
-                                            timeout or self.config.sdo_timeout)
+        return self._channel_for(node_id, lambda channel: channel.write(
+            index, subindex, data, timeout or self.config.sdo_timeout))
 
     def nmt_command(self, node_id: int, command: int) -> NmtResult:
         """Send NMT ``command`` to ``node_id`` (0 = all nodes); checked before sending."""
@@ -173,24 +210,52 @@ class Gateway:
         if command not in nmt.COMMAND_NAMES:
             known = ', '.join(f'{code} {name}' for code, name in nmt.COMMAND_NAMES.items())
             return NmtResult(False, f'command {command} is not an NMT command: allowed {known}')
+        refusal = self.config.write_protection.refuses_nmt()
+        if refusal:
+            return NmtResult(False, refusal, abort_codes.LOCAL_CONTROL)
         try:
             self.network.send_message(0, bytes([command, node_id]))
-        except Exception as error:  # noqa: BLE001 - a lost bus must become an answer
-            return NmtResult(False, f'the NMT frame could not be sent: {error}')
+        except BusDown as error:
+            return NmtResult(False, f'the NMT command was not sent: {error}')
         return NmtResult(True)
+
+    def _open_bus(self) -> can.BusABC:
+        options = dict(self.config.bus_options)
+        if self.config.bitrate:
+            options['bitrate'] = self.config.bitrate
+        return can.Bus(interface=self.config.interface, channel=self.config.channel,
+                       **options)
+
+    def _on_bus_change(self, status: BusStatus) -> None:
+        if status.up:
+            return
+        with self._lock:
+            channels = list(self._channels.values())
+        for channel in channels:
+            channel.fail_all(f'the CAN bus is down: {status.reason}')
+        self.monitor.lose_all()
 
     def _read_own(self, index: int, subindex: int, max_size: int) -> bytes:
         data = self.dictionary.get_data(index, subindex, check_readable=True)
         check_size(len(data), max_size)
         return data
 
-    def _channel(self, node_id: int) -> SdoChannel:
-        with self._channels_lock:
+    def _channel_for(self, node_id: int, request) -> 'Future[SdoResult]':
+        status = self.bus.status
+        with self._lock:
+            if self._closing:
+                return resolved(SdoResult.failed(f'{SHUTTING_DOWN}; nothing was sent'))
+            if not status.up:
+                return resolved(SdoResult.failed(
+                    f'the CAN bus is down: {status.reason}; nothing was sent'))
             channel = self._channels.get(node_id)
             if channel is None:
-                remote = canopen.RemoteNode(node_id, od.ObjectDictionary())
-                self.network.add_node(remote)
-                channel = SdoChannel(remote.sdo, f'sdo-node-{node_id}',
-                                     self.config.block_transfer)
+                client = StrictSdoClient(0x600 + node_id, 0x580 + node_id,
+                                         od.ObjectDictionary())
+                client.network = self.network
+                self.network.subscribe(client.tx_cobid, client.on_response)
+                channel = SdoChannel(client, node_id, self._deadlines,
+                                     self.config.block_transfer, self.config.queue_limit,
+                                     self.config.read_retries)
                 self._channels[node_id] = channel
-            return channel
+        return request(channel)

@@ -146,6 +146,15 @@ class HeartbeatMonitor:
         if changed:
             self._notify()
 
+    def lose_all(self) -> None:
+        """Report every node NOT_DETECTED (the bus is down: nothing can be heard)."""
+        with self._changed:
+            lost = [entry for entry in self._nodes.values() if entry.state != NOT_DETECTED]
+            for entry in lost:
+                entry.state = NOT_DETECTED
+        if lost:
+            self._notify()
+
     def _watch(self) -> None:
         with self._changed:
             while self._running:
@@ -179,23 +188,35 @@ class NodeGuarding:
     """Polls nodes without a heartbeat producer by node guarding (RTR on 0x700 + id).
 
     Their replies arrive on the heartbeat COB-ID and are tracked by the monitor like
-    heartbeats; the state byte's toggle bit is masked there.
+    heartbeats; the state byte's toggle bit is masked there. The polling runs on a thread of
+    its own and survives failed sends (the bus supervisor reports and repairs the bus), so
+    guarding resumes by itself when the bus comes back.
     """
 
     def __init__(self, network, node_ids: Iterable[int], period: float):
         self._network = network
         self._node_ids = sorted(set(node_ids))
         self._period = period
-        self._tasks = []
+        self._stopped = threading.Event()
+        self._thread = threading.Thread(target=self._poll, name='node-guarding', daemon=True)
 
     def start(self) -> None:
-        """Start one periodic remote request per guarded node."""
-        self._tasks = [self._network.send_periodic(HEARTBEAT_COB_BASE + node_id, [],
-                                                   self._period, remote=True)
-                       for node_id in self._node_ids]
+        """Start polling the guarded nodes, if any."""
+        if self._node_ids:
+            self._thread.start()
 
     def stop(self) -> None:
         """Stop polling."""
-        for task in self._tasks:
-            task.stop()
-        self._tasks = []
+        self._stopped.set()
+        if self._thread.is_alive():
+            self._thread.join()
+
+    def _poll(self) -> None:
+        while True:
+            for node_id in self._node_ids:
+                try:
+                    self._network.send_message(HEARTBEAT_COB_BASE + node_id, b'', remote=True)
+                except Exception:  # noqa: BLE001, S112 - the bus supervisor reports faults
+                    continue
+            if self._stopped.wait(self._period):
+                return

@@ -1,22 +1,30 @@
-"""SDO transfers: request checks, the guarded transfer functions and one worker per device.
+"""SDO transfers: request checks, the transfer functions and one bounded queue per device.
 
 Every transfer runs on the worker thread of its device, so requests to one device are
 serialized (a device has one SDO server channel) while different devices run in parallel.
-Callers get a ``concurrent.futures.Future`` that always resolves to an :class:`SdoResult`:
-every failure of the canopen library, expected or not, becomes an honest error answer here.
+Callers get a ``concurrent.futures.Future`` that always resolves to exactly one
+:class:`SdoResult`, within the request's timeout: every failure of the canopen library,
+expected or not, becomes an honest error answer here, and so do a full queue, a lost bus
+and shutdown.
 """
 
-from concurrent.futures import Future
+from collections import deque
+from concurrent.futures import Future, InvalidStateError
+import contextlib
 from dataclasses import dataclass
+import heapq
+import itertools
 import logging
 import math
-import queue
 import threading
+import time
 from typing import Callable, Optional
 
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from . import abort_codes
+from .bus import BusDown
+from .sdo_client import StrictSdoClient, TransferAborted, TransferCancelled
 
 LOGGER = logging.getLogger(__name__)
 
@@ -47,9 +55,9 @@ class SdoResult:
         return cls(False, abort_code=code, message=message)
 
     @classmethod
-    def invalid(cls, message: str) -> 'SdoResult':
-        """Return the answer to a request that was refused before it reached the bus."""
-        return cls(False, message=message)
+    def failed(cls, message: str, code: int = 0) -> 'SdoResult':
+        """Return a failed result that no device abort explains (refused, bus down, ...)."""
+        return cls(False, abort_code=code, message=message)
 
 
 def check_node_id(node_id: int, allowed: str = "0..127 (0 = the gateway's own dictionary)",
@@ -85,50 +93,47 @@ def check_size(size: int, max_size: int) -> None:
         raise ObjectTooLarge(f'the object holds {size} bytes, max_size is {max_size}')
 
 
-class BlockTransferRefused(Exception):
-    """The device refused to initiate a block transfer; nothing was transferred."""
-
-    def __init__(self, device_lacks_block: bool):
-        super().__init__('block transfer refused')
-        self.device_lacks_block = device_lacks_block
-
-
-def _is_timeout(error: SdoCommunicationError) -> bool:
-    return 'No SDO response' in str(error)
+def _write_all(stream, data: bytes) -> None:
+    # A raw canopen stream takes at most 7 bytes per write() (one segment): loop.
+    view = memoryview(data)
+    position = 0
+    while position < len(data):
+        position += stream.write(view[position:position + 7])
 
 
-def _open(client, index: int, subindex: int, mode: str, block: bool, **kwargs):
-    """Open a transfer stream; a refused block initiation raises BlockTransferRefused.
-
-    A device without block support either aborts the initiation (0x05040001) or, as CiA 301
-    allows for uploads, answers with a normal upload response, which canopen's block client
-    cannot take and aborts. Neither moved any data, so the caller may repeat it segmented.
-    """
-    if not block:
-        return client.open(index, subindex, mode, buffering=0, **kwargs)
-    try:
-        return client.open(index, subindex, mode, buffering=0, block_transfer=True, **kwargs)
-    except SdoAbortedError as error:
-        raise BlockTransferRefused(error.code == abort_codes.UNKNOWN_COMMAND) from error
-    except SdoCommunicationError as error:
-        if _is_timeout(error):
-            raise
-        raise BlockTransferRefused(True) from error
+def _close_after_failure(client: StrictSdoClient, stream) -> None:
+    # Closing a failed stream must not send its closing frames; the abort goes first.
+    client.abort(abort_codes.GENERAL_ERROR)
+    with contextlib.suppress(Exception):
+        stream.close()
 
 
-def upload(client, index: int, subindex: int, max_size: int, block: bool) -> bytes:
-    """Read an object through a canopen ``SdoClient``, refusing more than ``max_size`` bytes.
+def upload(client: StrictSdoClient, index: int, subindex: int, max_size: int,
+           block: bool) -> bytes:
+    """Read an object, refusing more than ``max_size`` bytes (0 = no limit).
 
     The size a device announces is checked before any segment is fetched, so an oversized
-    object costs one round trip; the transfer is then aborted on the bus with 0x05040005.
+    object costs one round trip (aborted with 0x05040005); the bytes that arrive must then
+    match the announced size (0x06070012 too many, 0x06070013 too few).
     """
-    stream = _open(client, index, subindex, 'rb', block)
+    stream = client.open(index, subindex, 'rb', buffering=0, block_transfer=block)
     try:
-        announced = stream.size
+        data = _read_all(client, stream, max_size)
+    except BaseException:
+        _close_after_failure(client, stream)
+        raise
+    stream.close()
+    return data
+
+
+def _read_all(client: StrictSdoClient, stream, max_size: int) -> bytes:
+    expedited = getattr(stream, 'exp_data', None) is not None
+    announced = stream.size
+    parts = []
+    received = 0
+    try:
         if announced is not None:
             check_size(announced, max_size)
-        parts = []
-        received = 0
         while True:
             part = stream.read(7)
             if not part:
@@ -136,48 +141,49 @@ def upload(client, index: int, subindex: int, max_size: int, block: bool) -> byt
             parts.append(part)
             received += len(part)
             check_size(received, max_size)
-        data = b''.join(parts)
-        if announced is not None:
-            data = data[:announced]
-        return data
-    except ObjectTooLarge:
-        expedited = getattr(stream, 'exp_data', None) is not None
-        if not expedited and not getattr(stream, '_done', False):
-            client.abort(abort_codes.OUT_OF_MEMORY)
+            if announced is not None and received > announced:
+                raise client.fail(abort_codes.DATA_TOO_LONG,
+                                  f'the device announced {announced} bytes and sent more')
+    except ObjectTooLarge as error:
+        raise client.fail(abort_codes.OUT_OF_MEMORY, str(error), on_bus=not expedited) \
+            from None
+    if announced is not None and received != announced:
+        raise client.fail(abort_codes.DATA_TOO_SHORT,
+                          f'the device announced {announced} bytes and sent {received}')
+    return b''.join(parts)
+
+
+def download(client: StrictSdoClient, index: int, subindex: int, data: bytes,
+             block: bool) -> None:
+    """Write an object (expedited, segmented or block)."""
+    stream = client.open(index, subindex, 'wb', buffering=0, size=len(data),
+                         block_transfer=block)
+    try:
+        _write_all(stream, data)
+    except BaseException:
+        _close_after_failure(client, stream)
         raise
-    finally:
-        stream.close()
-
-
-def download(client, index: int, subindex: int, data: bytes, block: bool) -> None:
-    """Write an object through a canopen ``SdoClient`` (expedited, segmented or block)."""
-    if block:
-        with _open(client, index, subindex, 'wb', True, size=len(data)) as stream:
-            stream.write(data)
-    else:
-        client.download(index, subindex, data)
-
-
+    stream.close()
 
 
 def run_guarded(transfer: Callable[[], Optional[bytes]]) -> SdoResult:
     """Run one transfer and turn whatever it raises into an :class:`SdoResult`.
 
-    This is the one place where library failures become answers: an abort from the device,
-    a timeout, a malformed frame (canopen lets ``struct.error`` escape for short frames),
-    a bus that went away. Nothing raised here may reach a ROS callback.
+    This is the one place where failures become answers: an abort from the device or from
+    the gateway, a timeout, a cancelled transfer, a bus that went away. Nothing raised here
+    may reach a ROS callback.
     """
     try:
         return SdoResult.ok(transfer() or b'')
+    except TransferAborted as error:
+        return SdoResult.aborted(error.code, error.detail)
     except SdoAbortedError as error:
         return SdoResult.aborted(error.code)
+    except (TransferCancelled, BusDown) as error:
+        return SdoResult.failed(str(error))
     except ObjectTooLarge as error:
         return SdoResult.aborted(abort_codes.OUT_OF_MEMORY, str(error))
     except SdoCommunicationError as error:
-        if _is_timeout(error):
-            return SdoResult.aborted(abort_codes.TIMEOUT, 'the device did not answer')
-        if 'Toggle bit' in str(error):
-            return SdoResult.aborted(abort_codes.TOGGLE_BIT)
         return SdoResult.aborted(abort_codes.GENERAL_ERROR, f'protocol error: {error}')
     except Exception as error:  # noqa: BLE001 - every failure must become an answer
         LOGGER.warning('SDO transfer failed unexpectedly: %r', error)
@@ -185,73 +191,10 @@ def run_guarded(transfer: Callable[[], Optional[bytes]]) -> SdoResult:
                                  f'{type(error).__name__}: {error}')
 
 
-class DeviceWorker:
-    """Runs the SDO transfers of one device one after another on a thread of its own."""
-
-    def __init__(self, name: str):
-        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
-
-    def submit(self, transfer: Callable[[], Optional[bytes]]) -> 'Future[SdoResult]':
-        """Queue a transfer; the future resolves to its :class:`SdoResult`."""
-        future: Future = Future()
-        self._jobs.put((transfer, future))
-        return future
-
-    def stop(self) -> None:
-        """Finish the queued transfers, then end the thread."""
-        self._jobs.put(None)
-        self._thread.join()
-
-    def _run(self) -> None:
-        while True:
-            job = self._jobs.get()
-            if job is None:
-                return
-            transfer, future = job
-            if future.set_running_or_notify_cancel():
-                future.set_result(run_guarded(transfer))
-
-
-class SdoChannel:
-    """The SDO server channel of one remote device: its canopen client and its worker.
-
-    Block transfer is tried first when enabled; a device that refuses to initiate one gets
-    segmented transfers from then on (nothing was transferred, so falling back is safe even
-    for writes).
-    """
-
-    def __init__(self, client, name: str, block_transfer: bool):
-        self._client = client
-        self._client.MAX_RETRIES = 1  # one request only: a write is never sent twice
-        self._worker = DeviceWorker(name)
-        self._block = block_transfer
-
-    def read(self, index: int, subindex: int, max_size: int,
-             timeout: float) -> 'Future[SdoResult]':
-        """Queue an upload of ``index:subindex``."""
-        return self._worker.submit(lambda: self._with_block_fallback(
-            timeout, lambda block: upload(self._client, index, subindex, max_size, block)))
-
-    def write(self, index: int, subindex: int, data: bytes,
-              timeout: float) -> 'Future[SdoResult]':
-        """Queue a download of ``data`` to ``index:subindex``."""
-        return self._worker.submit(lambda: self._with_block_fallback(
-            timeout, lambda block: download(self._client, index, subindex, data, block)))
-
-    def stop(self) -> None:
-        """Finish queued transfers and end the worker."""
-        self._worker.stop()
-
-    def _with_block_fallback(self, timeout: float, transfer: Callable[[bool], Optional[bytes]]):
-        self._client.RESPONSE_TIMEOUT = timeout
-        if self._block:
-            try:
-                return transfer(True)
-            except BlockTransferRefused as refusal:
-                self._block = not refusal.device_lacks_block
-        return transfer(False)
+def answer(future: Future, result: SdoResult) -> None:
+    """Resolve ``future`` with ``result`` unless it already has its one answer."""
+    with contextlib.suppress(InvalidStateError):
+        future.set_result(result)
 
 
 def resolved(result: SdoResult) -> 'Future[SdoResult]':
@@ -259,3 +202,170 @@ def resolved(result: SdoResult) -> 'Future[SdoResult]':
     future: Future = Future()
     future.set_result(result)
     return future
+
+
+@dataclass(eq=False)
+class _Job:
+    run: Callable[[float], SdoResult]
+    deadline: float
+    timeout: float
+    future: Future
+
+
+class Deadlines:
+    """One thread that answers queued requests whose time ran out before their turn."""
+
+    def __init__(self):
+        self._heap = []
+        self._order = itertools.count()
+        self._changed = threading.Condition()
+        self._running = True
+        self._thread = threading.Thread(target=self._run, name='sdo-deadlines', daemon=True)
+        self._thread.start()
+
+    def watch(self, deadline: float, expire: Callable[[], None]) -> None:
+        """Call ``expire()`` at ``deadline`` (time.monotonic())."""
+        with self._changed:
+            heapq.heappush(self._heap, (deadline, next(self._order), expire))
+            if self._heap[0][2] is expire:
+                self._changed.notify()
+
+    def stop(self) -> None:
+        """End the thread; pending deadlines are dropped."""
+        with self._changed:
+            self._running = False
+            self._changed.notify()
+        self._thread.join(timeout=1.0)
+
+    def _run(self) -> None:
+        with self._changed:
+            while self._running:
+                now = time.monotonic()
+                if self._heap and self._heap[0][0] <= now:
+                    _, _, expire = heapq.heappop(self._heap)
+                    self._changed.release()
+                    try:
+                        expire()
+                    finally:
+                        self._changed.acquire()
+                    continue
+                self._changed.wait(self._heap[0][0] - now if self._heap else None)
+
+
+class SdoChannel:
+    """The SDO server channel of one remote device: its strict client, queue and worker.
+
+    At most ``queue_limit`` requests wait for the device; more are refused at once. Each
+    request's timeout covers its time in the queue and its transfer. Block transfer is
+    tried first when enabled; a device that refuses to initiate one gets segmented
+    transfers (nothing was transferred, so repeating is safe even for writes).
+    """
+
+    def __init__(self, client: StrictSdoClient, node_id: int, deadlines: Deadlines,
+                 block_transfer: bool, queue_limit: int, read_retries: int = 0):
+        self.node_id = node_id
+        self._client = client
+        self._deadlines = deadlines
+        self._block = block_transfer
+        self._queue_limit = queue_limit
+        self._read_retries = read_retries
+        self._queue: deque = deque()
+        self._changed = threading.Condition()
+        self._closed: Optional[SdoResult] = None
+        self._thread = threading.Thread(target=self._work, name=f'sdo-node-{node_id}',
+                                        daemon=True)
+        self._thread.start()
+
+    def read(self, index: int, subindex: int, max_size: int,
+             timeout: float) -> 'Future[SdoResult]':
+        """Queue an upload of ``index:subindex``."""
+        def run(deadline: float) -> SdoResult:
+            attempts = self._read_retries + 1
+            while True:
+                # Retries share the timeout: each attempt gets an equal part of what is left.
+                attempt_deadline = time.monotonic() + (deadline - time.monotonic()) / attempts
+                result = self._transfer(index, subindex, attempt_deadline, lambda block: upload(
+                    self._client, index, subindex, max_size, block))
+                attempts -= 1
+                if result.abort_code != abort_codes.TIMEOUT or not attempts:
+                    return result
+        return self._submit(run, timeout)
+
+    def write(self, index: int, subindex: int, data: bytes,
+              timeout: float) -> 'Future[SdoResult]':
+        """Queue a download of ``data`` to ``index:subindex``; it is sent once at most."""
+        return self._submit(lambda deadline: self._transfer(
+            index, subindex, deadline,
+            lambda block: download(self._client, index, subindex, data, block)), timeout)
+
+    def fail_all(self, reason: str, abort_code: Optional[int] = None) -> None:
+        """Answer every queued request with ``reason`` and end the running transfer."""
+        with self._changed:
+            jobs = list(self._queue)
+            self._queue.clear()
+        for job in jobs:
+            answer(job.future, SdoResult.failed(reason))
+        self._client.cancel(reason, abort_code)
+
+    def close(self, reason: str, abort_code: Optional[int]) -> None:
+        """Refuse new requests, fail queued ones and end the running transfer."""
+        with self._changed:
+            self._closed = SdoResult.failed(reason)
+            self._changed.notify()
+        self.fail_all(reason, abort_code)
+
+    def join(self, timeout: float) -> None:
+        """Wait for the worker to end (after :meth:`close`)."""
+        self._thread.join(timeout)
+
+    def _submit(self, run: Callable[[float], SdoResult], timeout: float) -> 'Future[SdoResult]':
+        job = _Job(run, time.monotonic() + timeout, timeout, Future())
+        with self._changed:
+            if self._closed is not None:
+                return resolved(self._closed)
+            if len(self._queue) >= self._queue_limit:
+                return resolved(SdoResult.failed(
+                    f'node {self.node_id} is busy: {self._queue_limit} requests are already '
+                    f'waiting for it (parameter sdo.queue_limit); nothing was sent',
+                    abort_codes.NO_RESOURCE))
+            self._queue.append(job)
+            self._changed.notify()
+        self._deadlines.watch(job.deadline, lambda: self._expire(job))
+        return job.future
+
+    def _expire(self, job: _Job) -> None:
+        with self._changed:
+            if job not in self._queue:
+                return  # running or answered: the transfer keeps its own deadline
+            self._queue.remove(job)
+        answer(job.future, SdoResult.aborted(
+            abort_codes.TIMEOUT, f'waited {job.timeout:g} s behind earlier requests to node '
+                                 f'{self.node_id}; nothing was sent'))
+
+    def _work(self) -> None:
+        while True:
+            with self._changed:
+                while not self._queue and self._closed is None:
+                    self._changed.wait()
+                if not self._queue:
+                    return
+                job = self._queue.popleft()
+            answer(job.future, job.run(job.deadline))
+
+    def _transfer(self, index: int, subindex: int, deadline: float,
+                  transfer: Callable[[bool], Optional[bytes]]) -> SdoResult:
+        def attempt(block: bool) -> Optional[bytes]:
+            return self._client.transfer(index, subindex, deadline, lambda: transfer(block))
+
+        def run() -> Optional[bytes]:
+            if self._block:
+                try:
+                    return attempt(True)
+                except TransferAborted as refusal:
+                    if self._client.initiated or refusal.code == abort_codes.TIMEOUT:
+                        raise
+                    # Refused at initiation, so nothing moved: segmented is safe to try.
+                    if refusal.code == abort_codes.UNKNOWN_COMMAND:
+                        self._block = False
+            return attempt(False)
+        return run_guarded(run)

@@ -533,7 +533,7 @@ class _BrokenGateway:
     def sdo_read(self, *args, **kwargs):
         if self._raise:
             raise RuntimeError('the core broke')
-        return resolved(SdoResult.invalid('refused before the bus'))
+        return resolved(SdoResult.failed('refused before the bus'))
 
     sdo_write = sdo_read
 

@@ -1,0 +1,267 @@
+"""Bus supervision: the one owner of the python-can bus, its health and its reconnection.
+
+python-can's ``Notifier`` ends its receive thread for good on the first receive error, and
+canopen's ``Network`` builds on it, so a single bad frame or a replugged adapter would leave
+the gateway deaf while it looks healthy. Here one thread opens the bus, receives, and on any
+failure (receive or send error, bus-off, an adapter that disappears, a bus that cannot be
+opened) reports the bus down once, closes it and opens it again with backoff until it works.
+
+Frames go to canopen through ``Network.notify``, the hook canopen offers custom back ends;
+the network's ``bus`` is a small proxy whose ``send`` goes through the supervisor, so a send
+on a bus that is down fails at once with :class:`BusDown` instead of reaching a dead driver.
+"""
+
+import contextlib
+from dataclasses import dataclass
+import logging
+import threading
+import time
+from typing import Callable, List, Optional
+
+import can
+
+LOGGER = logging.getLogger(__name__)
+
+FIRST_RETRY = 0.1
+MAX_RETRY = 5.0
+RECEIVE_POLL = 0.1  # how soon the receive thread notices a fault reported by a sender
+SEND_TIMEOUT = 0.2  # a transmit queue that does not drain is a fault, not a hang
+
+# SocketCAN's error-frame class bit for bus-off (linux/can/error.h CAN_ERR_BUSOFF).
+CAN_ERR_BUSOFF = 0x40
+
+
+class BusDown(Exception):
+    """The CAN bus is not usable now; the message says why."""
+
+
+@dataclass(frozen=True)
+class BusStatus:
+    """What callers and diagnostics see of the bus."""
+
+    up: bool
+    reason: str           # why it is down ('' while up)
+    reopen_count: int     # successful reopens after a fault (the first open is not counted)
+    frames_received: int
+    frames_sent: int
+    error_frames: int
+
+
+class _SupervisedBus:
+    """Stands in for the python-can bus inside canopen's Network.
+
+    Sends go through the supervisor, which knows whether there is a bus to send on.
+    """
+
+    def __init__(self, supervisor: 'BusSupervisor'):
+        self._supervisor = supervisor
+
+    @property
+    def channel_info(self) -> str:
+        return self._supervisor.description
+
+    def send(self, message: can.Message, timeout: Optional[float] = None) -> None:
+        self._supervisor.send(message)
+
+
+class BusSupervisor:
+    """Opens, watches and reopens the bus of a canopen ``Network``.
+
+    ``open_bus`` creates a new python-can bus each time it is called. Listeners get
+    ``(status)`` after every change between up and down, from the supervisor's thread.
+    """
+
+    def __init__(self, network, open_bus: Callable[[], can.BusABC], description: str):
+        self.description = description
+        self._network = network
+        self._open_bus = open_bus
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._bus: Optional[can.BusABC] = None
+        self._up = False
+        self._reason = 'not opened yet'
+        self._opened_before = False
+        self._down_logged = False
+        self._first_attempt = threading.Event()
+        self._fault: Optional[str] = None
+        self._stopping = False
+        self._send_gate: Optional[Callable[[can.Message], bool]] = None
+        self._gate_reason = ''
+        self._reopen_count = 0
+        self._received = 0
+        self._sent = 0
+        self._error_frames = 0
+        self._listener_errors = set()
+        self._listeners: List[Callable[[BusStatus], None]] = []
+        self._thread = threading.Thread(target=self._run, name='can-bus', daemon=True)
+        network.bus = _SupervisedBus(self)
+
+    def add_listener(self, listener: Callable[[BusStatus], None]) -> None:
+        """Call ``listener(status)`` whenever the bus goes down or comes back up."""
+        self._listeners.append(listener)
+
+    @property
+    def status(self) -> BusStatus:
+        """Return the bus state now."""
+        with self._lock:
+            return BusStatus(self._up, '' if self._up else self._reason, self._reopen_count,
+                             self._received, self._sent, self._error_frames)
+
+    def start(self) -> None:
+        """Open the bus (at once if possible) and keep it open from a thread of its own.
+
+        A bus that cannot be opened now is no error: it is retried in the background and
+        the status says why it is down meanwhile.
+        """
+        self._thread.start()
+        self._first_attempt.wait(MAX_RETRY)
+
+    def restrict_sending(self, allowed: Callable[[can.Message], bool], reason: str) -> None:
+        """From now on send only frames for which ``allowed(frame)`` holds; others fail."""
+        with self._lock:
+            self._send_gate = allowed
+            self._gate_reason = reason
+
+    def stop(self) -> None:
+        """Close the bus and end the supervisor's thread."""
+        with self._lock:
+            self._stopping = True
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+
+    def send(self, message: can.Message) -> None:
+        """Send ``message``; raise :class:`BusDown` when there is no usable bus.
+
+        A failed send is a fault of the bus: it is reported down and reopened.
+        """
+        with self._lock:
+            if self._send_gate is not None and not self._send_gate(message):
+                raise BusDown(self._gate_reason)
+            bus = self._bus
+            if bus is None or not self._up:
+                raise BusDown(f'the CAN bus is down: {self._reason}')
+        try:
+            bus.send(message, timeout=SEND_TIMEOUT)
+        except Exception as error:  # noqa: BLE001 - any driver failure is a bus fault
+            reason = f'sending failed: {error}'
+            self._report_fault(bus, reason)
+            raise BusDown(f'the CAN bus is down: {reason}') from error
+        with self._lock:
+            self._sent += 1
+
+    def _report_fault(self, bus: can.BusABC, reason: str) -> None:
+        with self._lock:
+            if self._bus is not bus or not self._up:
+                return
+            self._fault = reason
+        self._going_down(reason)
+
+    def _run(self) -> None:
+        retry = FIRST_RETRY
+        while not self._wake.is_set():
+            try:
+                bus = self._open_bus()
+            except Exception as error:  # noqa: BLE001 - any driver failure: try again later
+                self._going_down(f'cannot open the bus: {error}')
+                self._first_attempt.set()
+                self._wake.wait(retry)
+                retry = min(retry * 2, MAX_RETRY)
+                continue
+            opened = time.monotonic()
+            self._coming_up(bus)
+            reason = self._receive(bus)
+            self._close(bus)
+            if reason is None:
+                return
+            self._going_down(reason)
+            if time.monotonic() - opened >= MAX_RETRY:
+                retry = FIRST_RETRY  # it worked for a while: this is a new fault
+            self._wake.wait(retry)
+            retry = min(retry * 2, MAX_RETRY)
+
+    def _receive(self, bus: can.BusABC) -> Optional[str]:
+        """Feed frames to canopen until a fault (returned as its reason) or stop (None)."""
+        while True:
+            with self._lock:
+                if self._stopping:
+                    return None
+                if self._fault is not None:
+                    return self._fault
+            try:
+                message = bus.recv(RECEIVE_POLL)
+            except Exception as error:  # noqa: BLE001 - any driver failure is a bus fault
+                return f'receiving failed: {error}'
+            if message is None:
+                continue
+            if message.is_error_frame:
+                with self._lock:
+                    self._error_frames += 1
+                if message.arbitration_id & CAN_ERR_BUSOFF:
+                    return 'the adapter reported bus-off'
+                continue
+            # CANopen (CiA 301) uses 11-bit identifiers: extended frames are not for us.
+            if message.is_remote_frame or message.is_extended_id:
+                continue
+            with self._lock:
+                self._received += 1
+            try:
+                self._network.notify(message.arbitration_id, message.data, message.timestamp)
+            except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest
+                kind = type(error).__name__
+                if kind not in self._listener_errors:
+                    self._listener_errors.add(kind)
+                    LOGGER.exception('a frame handler failed (%s); receiving goes on', kind)
+
+    def _coming_up(self, bus: can.BusABC) -> None:
+        with self._lock:
+            reopened = self._opened_before
+            if reopened:
+                self._reopen_count += 1
+            self._opened_before = True
+            self._down_logged = False
+            self._bus = bus
+            self._up = True
+            self._fault = None
+            self._reason = ''
+        if reopened:
+            LOGGER.warning('CAN bus %s is up again', self.description)
+        else:
+            LOGGER.info('CAN bus %s is open', self.description)
+        self._first_attempt.set()
+        self._notify()
+
+    def _going_down(self, reason: str) -> None:
+        with self._lock:
+            if self._stopping:
+                return
+            changed = self._up or self._reason != reason
+            log = not self._down_logged
+            self._down_logged = True
+            self._up = False
+            self._reason = reason
+        if log:
+            LOGGER.error('CAN bus %s is down: %s; reopening until it works', self.description,
+                         reason)
+        if changed:
+            self._notify()
+
+    def _close(self, bus: can.BusABC) -> None:
+        with self._lock:
+            self._bus = None
+            self._up = False
+        try:
+            bus.shutdown()
+        except Exception as error:  # noqa: BLE001 - a dead adapter may fail to close too
+            LOGGER.debug('closing the failed bus raised %r', error)
+            # python-can's slcan driver writes to the (gone) port before closing it, so a
+            # failed shutdown leaves the serial port open: close it, or every replug leaks one.
+            port = getattr(bus, 'serialPortOrig', None)
+            if port is not None:
+                with contextlib.suppress(Exception):
+                    port.close()
+
+    def _notify(self) -> None:
+        status = self.status
+        for listener in self._listeners:
+            listener(status)
