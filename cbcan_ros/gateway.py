@@ -58,7 +58,7 @@ class GatewayConfig:
     queue_limit: int = 64
     read_retries: int = 0
     write_protection: WriteProtection = WriteProtection()
-    bus_options: Dict[str, str] = field(default_factory=dict)
+    bus_options: Dict[str, object] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

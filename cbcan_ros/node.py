@@ -3,21 +3,29 @@
 Service callbacks are coroutines. An SDO is handed to the device's worker thread and the
 callback awaits its completion, so the executor keeps serving other calls, timers and
 publishers while a slow device takes its time.
+
+Shutdown (SIGINT, SIGTERM or ``destroy_node``) answers every waiting call before rclpy goes
+away: ROS can only deliver an answer while the node still exists.
 """
 
 from concurrent.futures import Future as ConcurrentFuture
+import json
 import os
+import signal
 import sys
-from typing import List
+import threading
+import time
+from typing import Dict, List
 
 from builtin_interfaces.msg import Time
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 import rclpy.task
 
 from .gateway import Gateway, GatewayConfig
@@ -27,15 +35,21 @@ from .nmt import state_name
 from .sdo import check_node_id
 from .simulation import SimulatedDevice
 from .srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite
+from .write_protection import RULE_FORMAT, WriteProtection
 
 NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 # The default service QoS keeps 10 requests: a burst of calls (one per device, say) loses
-# the oldest before the executor takes them. Clients sending bursts need the same depth.
-SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=256,
+# the oldest before the executor takes them. KEEP_ALL loses none: every request that
+# reaches the node is answered (a full device queue is answered "busy"). Clients sending
+# bursts need a history deep enough for their answers too.
+SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
+
+# How long shutdown waits for answers already decided to leave the node.
+ANSWER_GRACE = 1.0
 
 
 def _time(seconds: float) -> Time:
@@ -43,11 +57,26 @@ def _time(seconds: float) -> Time:
     return Time(sec=whole, nanosec=int((seconds - whole) * 1e9))
 
 
+def _counted_call(callback):
+    """Count the calls in progress, so shutdown can wait for their answers to leave."""
+    async def counted(self, request, response):
+        with self._calls_lock:
+            self._calls_in_progress += 1
+        try:
+            return await callback(self, request, response)
+        finally:
+            with self._calls_lock:
+                self._calls_in_progress -= 1
+    return counted
+
+
 class CbcanNode(Node):
     """One CAN bus as ROS 2 services and a node-state topic."""
 
     def __init__(self, **kwargs):
         super().__init__('cbcan', **kwargs)
+        self._calls_in_progress = 0
+        self._calls_lock = threading.Lock()
         self.gateway = Gateway(self._read_config())
         self._simulated = [
             SimulatedDevice(node_id, self._simulation_eds(), self.gateway.config.interface,
@@ -80,11 +109,22 @@ class CbcanNode(Node):
             f'CANopen gateway on {config.interface} channel {config.channel!r}; '
             f'simulated devices: {[d.node_id for d in self._simulated] or "none"}')
 
+    def shut_down_gateway(self) -> None:
+        """Answer every waiting call ("shutting down"), abort running transfers, close the bus.
+
+        While the executor still spins, the answers reach their callers; this waits up to
+        ``ANSWER_GRACE`` seconds for them to leave.
+        """
+        self.gateway.stop()
+        deadline = time.monotonic() + ANSWER_GRACE
+        while self._calls_in_progress and time.monotonic() < deadline:
+            time.sleep(0.005)
+
     def destroy_node(self) -> None:
-        """Stop the simulated devices and close the bus."""
+        """Answer waiting calls, close the bus, stop the simulated devices."""
+        self.shut_down_gateway()
         for device in self._simulated:
             device.stop()
-        self.gateway.stop()
         super().destroy_node()
 
     def _declare(self, name: str, value, description: str, **ranges) -> Parameter:
@@ -105,10 +145,29 @@ class CbcanNode(Node):
                       '0 leaves the interface as configured',
                       integer_range=[IntegerRange(from_value=0, to_value=1_000_000, step=0)])
         self._declare('sdo.timeout', 0.5,
-                      'Seconds to wait for each SDO answer from a device, unless a request '
-                      'gives its own timeout',
+                      'Seconds a whole SDO request may take (waiting behind other requests '
+                      'to the device included), unless the request gives its own timeout',
                       floating_point_range=[FloatingPointRange(
                           from_value=0.001, to_value=60.0, step=0.0)])
+        self._declare('can.options', Parameter.Type.STRING_ARRAY,
+                      'Further python-can bus options as key=value, passed to the interface '
+                      'as they are (values parsed as JSON when they can be), e.g. '
+                      '["sleep_after_open=0", "tty_baudrate=115200"] for slcan')
+        self._declare('sdo.queue_limit', 64,
+                      'Requests that may wait for one device; a request beyond this is '
+                      'answered at once as busy (abort 0x060A0023), nothing is sent',
+                      integer_range=[IntegerRange(from_value=1, to_value=10_000, step=0)])
+        self._declare('sdo.read_retries', 0,
+                      'Times a read that timed out is repeated within its timeout (the '
+                      'timeout is shared equally among the attempts); writes are never '
+                      'repeated',
+                      integer_range=[IntegerRange(from_value=0, to_value=10, step=0)])
+        self._declare('read_only', False,
+                      'Refuse every SDO write and NMT command (abort 0x08000021); nothing '
+                      'is sent')
+        self._declare('sdo.write_allow', Parameter.Type.STRING_ARRAY,
+                      f'Objects that SDO writes may reach, each {RULE_FORMAT}; empty = all. '
+                      'Other writes are refused with abort 0x08000021 and never sent')
         self._declare('sdo.block_transfer', False,
                       'Try SDO block transfer first; devices that refuse it get segmented '
                       'transfers')
@@ -145,7 +204,27 @@ class CbcanNode(Node):
             heartbeat_timeout=value('heartbeat.timeout'),
             expected_nodes=tuple(self._node_ids('nodes')),
             guarded_nodes=tuple(self._node_ids('node_guarding')),
-            guard_period=value('node_guarding_period'))
+            guard_period=value('node_guarding_period'),
+            queue_limit=value('sdo.queue_limit'),
+            read_retries=value('sdo.read_retries'),
+            write_protection=WriteProtection.from_settings(
+                value('read_only'), self._strings('sdo.write_allow')),
+            bus_options=self._bus_options())
+
+    def _strings(self, name: str) -> List[str]:
+        return list(self.get_parameter_or(name, Parameter(name, value=[])).value or [])
+
+    def _bus_options(self) -> Dict[str, object]:
+        options = {}
+        for option in self._strings('can.options'):
+            key, equals, text = option.partition('=')
+            if not equals or not key.strip():
+                raise ValueError(f'parameter can.options: {option!r} is not key=value')
+            try:
+                options[key.strip()] = json.loads(text)
+            except ValueError:
+                options[key.strip()] = text
+        return options
 
     def _value(self, name: str):
         return self.get_parameter(name).value
@@ -180,6 +259,7 @@ class CbcanNode(Node):
         future.add_done_callback(hand_over)
         return await done
 
+    @_counted_call
     async def _on_sdo_read(self, request, response):
         result = await self._completion(self.gateway.sdo_read(
             request.node_id, request.index, request.subindex, request.max_size,
@@ -190,6 +270,7 @@ class CbcanNode(Node):
         response.data = list(result.data)
         return response
 
+    @_counted_call
     async def _on_sdo_write(self, request, response):
         result = await self._completion(self.gateway.sdo_write(
             request.node_id, request.index, request.subindex, bytes(request.data),
@@ -221,6 +302,7 @@ class CbcanNode(Node):
         response.last_seen_age = status.last_seen_age
         return response
 
+    @_counted_call
     async def _on_plc_mailbox(self, request, response):
         response.registers, response.message = await self._mailbox.execute(
             request.format, list(request.registers))
@@ -237,8 +319,19 @@ class CbcanNode(Node):
 
 
 def main(args=None) -> int:
-    """Run the gateway node until interrupted."""
-    rclpy.init(args=args)
+    """Run the gateway node until SIGINT or SIGTERM; a second signal ends it at once."""
+    stop = threading.Event()
+
+    def on_signal(signum, _frame) -> None:
+        if stop.is_set():
+            os._exit(128 + signum)  # the impatient second Ctrl-C: no cleanup, no traceback
+        stop.set()
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, on_signal)
+    # rclpy's own handler would shut the context down first, and a node without a context
+    # can answer nobody: shutdown is ours, in order.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = CbcanNode()
     except Exception as error:  # noqa: BLE001 - a configuration error ends the process cleanly
@@ -247,11 +340,20 @@ def main(args=None) -> int:
         return 1
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+
+    def spin() -> None:
+        try:
+            executor.spin()
+        finally:
+            stop.set()
+
+    spinner = threading.Thread(target=spin, name='executor', daemon=True)
+    spinner.start()
+    stop.wait()  # the main thread only waits: signal handlers run here at once
+    node.get_logger().info('shutting down: answering waiting calls')
+    node.shut_down_gateway()
+    executor.shutdown(timeout_sec=ANSWER_GRACE)
+    spinner.join(ANSWER_GRACE)
+    node.destroy_node()
+    rclpy.try_shutdown()
     return 0
