@@ -34,6 +34,11 @@ SERVICE_TYPES = {
 DEFAULT_DEVICES = [2, 3, 5]
 
 
+def new_channel() -> str:
+    """Return a python-can channel name no other test uses."""
+    return f'test-{uuid.uuid4().hex[:8]}'
+
+
 def wait_until(condition, timeout: float, what: str):
     """Wait for ``condition()`` to become truthy, failing the test after ``timeout`` seconds."""
     deadline = time.monotonic() + timeout
@@ -62,12 +67,13 @@ class Harness:
     """The gateway node under test, its simulated devices, a raw view of the bus, clients."""
 
     def __init__(self, parameters: dict):
-        self.channel = f'test-{uuid.uuid4().hex[:8]}'
+        self.channel = parameters.get('can.channel') or new_channel()
         overrides = {'can.interface': 'virtual', 'can.channel': self.channel,
                      'simulation.devices': DEFAULT_DEVICES}
         overrides.update(parameters)
         self.node = CbcanNode(parameter_overrides=[
-            Parameter(name, value=value) for name, value in overrides.items()])
+            Parameter(name, value=value) for name, value in overrides.items()
+            if value is not None])  # None leaves a parameter at its default
         self.client_node = rclpy.create_node(f'test_client_{uuid.uuid4().hex[:8]}')
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
@@ -161,3 +167,34 @@ def make_gateway():
 def gateway(make_gateway):
     """Start a gateway node with simulated devices 2, 3 and 5 on a private virtual bus."""
     return make_gateway()
+
+
+@pytest.fixture
+def start_node():
+    """Return a factory ``start_node(arguments, port=None)``; every process is ended after."""
+    import node_process  # it imports this module: a top-level import would be circular
+
+    processes = []
+
+    def factory(arguments, port=None) -> 'node_process.NodeProcess':
+        process = node_process.NodeProcess(arguments, port)
+        processes.append(process)
+        return process
+
+    yield factory
+    for process in processes:
+        process.close()
+
+
+@pytest.fixture
+def client_node():
+    """Yield an rclpy node of this process, spun by an executor in a thread of its own."""
+    node = rclpy.create_node(f'process_test_{uuid.uuid4().hex[:8]}')
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    yield node
+    executor.shutdown(timeout_sec=2.0)
+    spinner.join(timeout=5.0)
+    node.destroy_node()

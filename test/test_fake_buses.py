@@ -5,12 +5,12 @@ import time
 import uuid
 
 import can
-from fake_slcan import FakeSlcanAdapter
-from faulty_bus import CAN_ERR_BUSOFF, FaultController, register
 import pytest
 import serial
 
 from conftest import wait_until
+from fake_slcan import FakeSlcanAdapter
+from faulty_bus import CAN_ERR_BUSOFF, FaultController, register
 
 register()
 

@@ -2,118 +2,22 @@
 
 The simulated devices run in this test process on the same udp_multicast channel, so every
 SDO, NMT and heartbeat frame crosses a process boundary, and so does every service call.
-
-python-can's udp_multicast sockets bind to the port on every address: on Linux a socket hears
-every group any socket of the machine joined on that port. A random group alone therefore does
-not keep parallel runs apart; a random port does. The node has no parameter for the port, so
-the child gets it through python-can's own environment configuration (``CAN_CONFIG``).
 """
 
-import json
-import os
-import pathlib
-import random
-import shutil
-import signal
 import subprocess
-import tempfile
-import threading
 import uuid
 
 import pytest
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
 
 from cbcan_ros.msg import NodeStates
-from cbcan_ros.node import NODE_STATES_QOS, SERVICE_QOS
+from cbcan_ros.node import NODE_STATES_QOS
 from cbcan_ros.simulation import SimulatedDevice
 from cbcan_ros.srv import NmtCommand, NmtState, SdoRead, SdoWrite
 
-from conftest import wait_for_future, wait_until
+from conftest import wait_until
+from node_process import call, EDS, executable, random_bus, service_client, START_TIMEOUT
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-EDS = str(ROOT / 'config' / 'simulated_device.eds')
 DEVICES = (2, 5)
-START_TIMEOUT = 15.0  # process start, parameter check, bus and DDS discovery
-STOP_TIMEOUT = 5.0
-
-
-def executable(name: str) -> str:
-    """Return the path of an installed executable (tools/ros-env puts them on PATH)."""
-    path = shutil.which(name)
-    assert path, f'{name} is not on PATH: run the tests through tools/ros-env after make build'
-    return path
-
-
-def random_bus():
-    """Return (IPv4 multicast group, UDP port) for this test run only."""
-    group = f'239.{random.randint(1, 254)}.{random.randint(0, 255)}.{random.randint(1, 254)}'
-    return group, random.randint(20000, 40000)
-
-
-class NodeProcess:
-    """``cbcan_node`` in a child process; its output goes to a file, read on failure."""
-
-    def __init__(self, arguments, port: int):
-        self._output = tempfile.TemporaryFile(mode='w+')
-        env = dict(os.environ, CAN_CONFIG=json.dumps({'port': port}))
-        self.process = subprocess.Popen([executable('cbcan_node'), '--ros-args', *arguments],
-                                        stdout=self._output, stderr=subprocess.STDOUT,
-                                        env=env, text=True)
-
-    def output(self) -> str:
-        """Return everything the process printed so far."""
-        self._output.flush()
-        self._output.seek(0)
-        return self._output.read()
-
-    def wait(self, timeout: float) -> int:
-        """Wait for the process to end by itself; fail the test after ``timeout`` seconds."""
-        try:
-            return self.process.wait(timeout)
-        except subprocess.TimeoutExpired:
-            raise AssertionError(f'cbcan_node still running after {timeout} s:\n'
-                                 f'{self.output()}') from None
-
-    def stop(self) -> None:
-        """Interrupt the process as Ctrl-C does, then kill it if it does not end in time."""
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGINT)
-            try:
-                self.process.wait(STOP_TIMEOUT)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait(STOP_TIMEOUT)
-        self._output.close()
-
-
-@pytest.fixture
-def start_node():
-    """Return a factory ``start_node(arguments, port)``; every process is ended afterwards."""
-    processes = []
-
-    def factory(arguments, port: int) -> NodeProcess:
-        process = NodeProcess(arguments, port)
-        processes.append(process)
-        return process
-
-    yield factory
-    for process in processes:
-        process.stop()
-
-
-@pytest.fixture
-def client_node():
-    """Yield an rclpy node of this process, spun by an executor in a thread of its own."""
-    node = rclpy.create_node(f'process_test_{uuid.uuid4().hex[:8]}')
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    yield node
-    executor.shutdown(timeout_sec=2.0)
-    spinner.join(timeout=5.0)
-    node.destroy_node()
 
 
 @pytest.fixture
@@ -134,15 +38,6 @@ def devices():
         device.stop()
 
 
-def call(client, request, what: str, gateway: NodeProcess, timeout: float = 10.0):
-    """Call a service and return the response, with the node's output on failure."""
-    try:
-        return wait_for_future(client.call_async(request), timeout)
-    except AssertionError as error:
-        raise AssertionError(f'{what}: {error}\ncbcan_node output:\n{gateway.output()}') \
-            from None
-
-
 def test_installed_node_serves_sdo_nmt_and_the_cli_over_udp_multicast(
         start_node, client_node, devices):
     group, port = random_bus()
@@ -161,13 +56,7 @@ def test_installed_node_serves_sdo_nmt_and_the_cli_over_udp_multicast(
                                     states.append, NODE_STATES_QOS)
 
     def client(service_type, service: str):
-        made = client_node.create_client(service_type, f'{gateway_name}/{service}',
-                                         qos_profile=SERVICE_QOS)
-        if not made.wait_for_service(timeout_sec=START_TIMEOUT):
-            raise AssertionError(
-                f'{gateway_name}/{service} did not appear within {START_TIMEOUT} s '
-                f'(exit status {gateway.process.poll()}):\n{gateway.output()}')
-        return made
+        return service_client(client_node, service_type, f'{gateway_name}/{service}', gateway)
 
     def latest_states():
         return {n.node_id: n.state_name for n in states[-1].nodes} if states else {}

@@ -1,0 +1,191 @@
+"""Bus supervision: receive, send and open failures and bus-off, as a caller meets them.
+
+The gateway runs on the fault-injecting ``faulty`` python-can interface (test/faulty_bus.py);
+the simulated devices sit on the plain ``virtual`` bus of the same channel, so a fault hits the
+gateway's adapter only, as a pulled cable or a dead USB adapter does on a robot.
+"""
+
+import logging
+import pathlib
+import struct
+import time
+
+import pytest
+
+from cbcan_ros.simulation import SimulatedDevice
+
+from conftest import new_channel, wait_for_future, wait_until
+import faulty_bus
+from faulty_bus import FaultController
+
+EDS = str(pathlib.Path(__file__).resolve().parent.parent / 'config' / 'simulated_device.eds')
+DEVICE_TYPE = struct.pack('<I', 0x00020192)
+RECOVERY = 10.0  # backoff doubles up to 5 s; generous for a loaded CI machine
+PROMPT = 1.0     # "at once", with room for a loaded CI machine
+
+faulty_bus.register()
+
+
+@pytest.fixture
+def start_faulty(make_gateway):
+    """Return a factory ``start_faulty(arm=None, **parameters) -> (gateway, faults)``.
+
+    ``arm(faults)`` runs before the gateway opens its bus (to start with the bus down).
+    """
+    devices = []
+
+    def factory(arm=None, **parameters):
+        channel = new_channel()
+        faults = FaultController.get(channel)
+        if arm is not None:
+            arm(faults)
+        for node_id in (2, 3):
+            device = SimulatedDevice(node_id, EDS, 'virtual', channel)
+            device.start()
+            devices.append(device)
+        settings = dict(can__interface='faulty', can__channel=channel,
+                        simulation__devices=None, nodes=[2, 3], heartbeat__timeout=0.5,
+                        state_publish_period=0.1)
+        settings.update(parameters)
+        gateway = make_gateway(**settings)
+        gateway.devices = {device.node_id: device for device in devices[-2:]}
+        return gateway, faults
+
+    yield factory
+    for device in devices:
+        device.stop()
+
+
+def read_device_type(gateway, node_id=2, **fields):
+    return gateway.call('sdo_read', node_id=node_id, index=0x1000, subindex=0, **fields)
+
+
+def wait_for_recovery(gateway):
+    wait_until(lambda: read_device_type(gateway).success, RECOVERY, 'SDO working again')
+    gateway.wait_for_states({2: 'PRE_OPERATIONAL', 3: 'PRE_OPERATIONAL'}, RECOVERY)
+
+
+def down_logs(caplog):
+    return [r for r in caplog.records if r.name == 'cbcan_ros.bus' and 'is down' in r.message]
+
+
+def test_receive_error_is_reported_once_and_the_bus_comes_back(start_faulty, caplog):
+    caplog.set_level(logging.INFO, logger='cbcan_ros.bus')
+    gateway, faults = start_faulty()
+    gateway.wait_for_states({2: 'PRE_OPERATIONAL', 3: 'PRE_OPERATIONAL'})
+    assert bytes(read_device_type(gateway).data) == DEVICE_TYPE
+    faults.fail_open('adapter gone')  # keep it down while we look
+    assert faults.fail_receive('adapter unplugged') == 1
+
+    gateway.wait_for_states({2: 'NOT_DETECTED', 3: 'NOT_DETECTED'}, PROMPT + 0.5)
+    started = time.monotonic()
+    answer = read_device_type(gateway)
+    assert time.monotonic() - started < PROMPT
+    assert not answer.success
+    assert 'CAN bus is down' in answer.message, answer.message
+    status = gateway.node.gateway.bus_status
+    assert not status.up and status.reason
+    # Several reopen attempts fail meanwhile (0.1, 0.2, 0.4 s ...), but the fault is one line.
+    wait_until(lambda: faults.open_failures >= 3, RECOVERY, 'three failed reopen attempts')
+    assert len(down_logs(caplog)) == 1, [r.message for r in down_logs(caplog)]
+    assert 'adapter unplugged' in down_logs(caplog)[0].message
+
+    faults.clear()
+    wait_for_recovery(gateway)
+    assert bytes(read_device_type(gateway).data) == DEVICE_TYPE
+    assert gateway.node.gateway.bus_status.reopen_count == 1
+    assert any('up again' in r.message for r in caplog.records if r.name == 'cbcan_ros.bus')
+
+
+def test_pending_and_queued_calls_are_answered_at_once_when_the_bus_goes_down(start_faulty):
+    gateway, faults = start_faulty()
+    gateway.devices[2].slow_read_delay = 3.0
+    slow = gateway.call_async('sdo_read', node_id=2, index=0x2200, subindex=0, timeout=8.0)
+    queued = [gateway.call_async('sdo_read', node_id=2, index=0x1000, subindex=0, timeout=8.0)
+              for _ in range(5)]
+    wait_until(lambda: any(m.arbitration_id == 0x602 for m in faults.sent), PROMPT,
+               'the slow request on the bus')
+    faults.fail_open('adapter gone')
+    faults.fail_receive('adapter unplugged')
+    started = time.monotonic()
+    answers = [wait_for_future(future, PROMPT + 1.0) for future in [slow, *queued]]
+    assert time.monotonic() - started < PROMPT
+    for response in answers:
+        assert not response.success
+        assert 'CAN bus is down' in response.message, response.message
+    faults.clear()
+    wait_for_recovery(gateway)
+
+
+def test_send_failure_takes_the_bus_down_and_it_recovers(start_faulty):
+    gateway, faults = start_faulty()
+    wait_until(lambda: read_device_type(gateway).success, PROMPT, 'a first read')
+    faults.fail_open('adapter gone')
+    faults.fail_send('transmit buffer overflow')
+    answer = read_device_type(gateway)
+    assert not answer.success
+    assert 'transmit buffer overflow' in answer.message, answer.message
+    nmt = gateway.call('nmt_command', node_id=2, command=1)
+    assert not nmt.success and 'CAN bus is down' in nmt.message, nmt.message
+    gateway.wait_for_states({2: 'NOT_DETECTED'}, PROMPT + 0.5)
+    faults.clear()
+    wait_for_recovery(gateway)
+    assert gateway.call('nmt_command', node_id=2, command=1).success
+    gateway.wait_for_states({2: 'OPERATIONAL'})
+
+
+def test_bus_off_reopens_the_bus(start_faulty):
+    gateway, faults = start_faulty()
+    wait_until(lambda: read_device_type(gateway).success, PROMPT, 'a first read')
+    opened = faults.open_count
+    assert faults.bus_off() == 1
+    wait_until(lambda: faults.open_count > opened, RECOVERY, 'the bus reopened after bus-off')
+    wait_for_recovery(gateway)
+    assert gateway.node.gateway.bus_status.reopen_count == 1
+
+
+def test_node_starts_without_an_adapter_and_connects_when_it_appears(start_faulty):
+    gateway, faults = start_faulty(arm=lambda faults: faults.fail_open('no such adapter'))
+    answer = read_device_type(gateway)
+    assert not answer.success
+    assert 'cannot open the bus' in answer.message and 'no such adapter' in answer.message
+    state = gateway.call('nmt_state', node_id=2)
+    assert state.state_name == 'NOT_DETECTED'
+    faults.clear()
+    wait_for_recovery(gateway)
+    assert gateway.node.gateway.bus_status.up
+
+
+def test_node_guarding_survives_send_errors_and_resumes(start_faulty):
+    gateway, faults = start_faulty(node_guarding=[3], node_guarding_period=0.1)
+    assert gateway.call('sdo_write', node_id=3, index=0x1017, subindex=0, data=[0, 0]).success
+    assert gateway.call('nmt_command', node_id=3, command=1).success
+    gateway.wait_for_states({3: 'OPERATIONAL'})
+    faults.fail_open('adapter gone')
+    faults.fail_send('transmit failed')
+    gateway.wait_for_states({3: 'NOT_DETECTED'}, PROMPT + 0.5)
+    faults.clear()
+    # No heartbeat from node 3: only the guarding replies can bring it back.
+    gateway.wait_for_states({3: 'OPERATIONAL'}, RECOVERY)
+    guarding = [m for m in faults.sent if m.arbitration_id == 0x703 and m.is_remote_frame]
+    count = len(guarding)
+    wait_until(lambda: len([m for m in faults.sent if m.arbitration_id == 0x703]) > count + 2,
+               RECOVERY, 'guarding requests going on after the fault')
+
+
+def test_a_thousand_concurrent_calls_each_get_one_honest_answer(start_faulty):
+    gateway, _faults = start_faulty(sdo__queue_limit=16)
+    futures = [gateway.call_async('sdo_read', node_id=2 + i % 2, index=0x1000, subindex=0,
+                                  timeout=10.0)
+               for i in range(1000)]
+    answers = [wait_for_future(future, 60.0) for future in futures]
+    served = [a for a in answers if a.success]
+    refused = [a for a in answers if not a.success]
+    assert len(answers) == 1000
+    assert all(bytes(a.data) == DEVICE_TYPE for a in served)
+    assert served, 'some calls were served'
+    for answer in refused:
+        assert answer.abort_code == 0x060A0023, answer.message
+        assert 'busy' in answer.message and '16' in answer.message, answer.message
+        assert 'sdo.queue_limit' in answer.message
+    assert bytes(read_device_type(gateway).data) == DEVICE_TYPE
