@@ -180,7 +180,7 @@ class Cbcan(_Translator):
         node_id = 0 if target == self.ALL_NODES else target
         result = self._gateway.nmt_command(node_id, command)
         if not result.success:
-            return self._aborted(block, abort_codes.GENERAL_ERROR), (
+            return self._aborted(block, self._abort_code(result)), (
                 f'NMT {nmt.COMMAND_NAMES[command]} failed: {result.message}')
         return self._result(block, self.OK), ''
 

@@ -63,6 +63,25 @@ def wait_for_future(future, timeout: float):
     return future.result()
 
 
+def frames_before_marker(gateway, bus: can.BusABC, timeout: float = 5.0):
+    """Return the SDO request frames the gateway sent before a marker read of node 3.
+
+    Frames arrive in order, so whatever an earlier call sent (a repeat included) is on the
+    bus before the marker's request.
+    """
+    assert gateway.call('sdo_read', node_id=3, index=0x1000, subindex=0).success
+    frames = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        message = bus.recv(0.1)
+        if message is None or not 0x600 <= message.arbitration_id <= 0x67F:
+            continue
+        if message.arbitration_id == 0x603:
+            return frames
+        frames.append(message)
+    raise AssertionError('the marker request was not seen on the bus')
+
+
 class Harness:
     """The gateway node under test, its simulated devices, a raw view of the bus, clients."""
 

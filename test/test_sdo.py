@@ -8,29 +8,10 @@ import time
 import can
 import pytest
 
-from conftest import wait_for_future, wait_until
+from conftest import frames_before_marker, wait_for_future, wait_until
 
 BIG = bytes((i * 7) % 251 for i in range(65536))
 BIG_TIMEOUT = 20.0  # a request's timeout covers the whole transfer: 64 KiB takes a while
-
-
-def frames_before_marker(gateway, bus: can.BusABC, timeout: float = 5.0):
-    """Return the SDO request frames the gateway sent before a marker read of node 3.
-
-    Frames arrive in order, so whatever an earlier call sent (a repeat included) is on the
-    bus before the marker's request.
-    """
-    assert gateway.call('sdo_read', node_id=3, index=0x1000, subindex=0).success
-    frames = []
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        message = bus.recv(0.1)
-        if message is None or not 0x600 <= message.arbitration_id <= 0x67F:
-            continue
-        if message.arbitration_id == 0x603:
-            return frames
-        frames.append(message)
-    raise AssertionError('the marker request was not seen on the bus')
 
 
 def test_expedited_read_returns_the_bytes_on_the_bus(gateway):
