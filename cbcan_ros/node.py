@@ -10,6 +10,7 @@ away: ROS can only deliver an answer while the node still exists.
 
 from concurrent.futures import Future as ConcurrentFuture
 import json
+import logging
 import os
 import signal
 import sys
@@ -57,6 +58,22 @@ def _time(seconds: float) -> Time:
     return Time(sec=whole, nanosec=int((seconds - whole) * 1e9))
 
 
+class _RosLogHandler(logging.Handler):
+    """Sends the core's Python log records (bus faults, recoveries) to the node's ROS logger."""
+
+    def __init__(self, logger):
+        super().__init__(logging.INFO)
+        self._logger = logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.levelno >= logging.ERROR:
+            self._logger.error(record.getMessage())
+        elif record.levelno >= logging.WARNING:
+            self._logger.warning(record.getMessage())
+        else:
+            self._logger.info(record.getMessage())
+
+
 def _counted_call(callback):
     """Count the calls in progress, so shutdown can wait for their answers to leave."""
     async def counted(self, request, response):
@@ -77,6 +94,10 @@ class CbcanNode(Node):
         super().__init__('cbcan', **kwargs)
         self._calls_in_progress = 0
         self._calls_lock = threading.Lock()
+        self._log_handler = _RosLogHandler(self.get_logger())
+        core_logger = logging.getLogger(__package__)
+        core_logger.setLevel(logging.INFO)
+        core_logger.addHandler(self._log_handler)
         self.gateway = Gateway(self._read_config())
         self._simulated = [
             SimulatedDevice(node_id, self._simulation_eds(), self.gateway.config.interface,
@@ -125,6 +146,7 @@ class CbcanNode(Node):
         self.shut_down_gateway()
         for device in self._simulated:
             device.stop()
+        logging.getLogger(__package__).removeHandler(self._log_handler)
         super().destroy_node()
 
     def _declare(self, name: str, value, description: str, **ranges) -> Parameter:
