@@ -10,7 +10,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 import logging
 import threading
-from typing import Dict, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import can
 import canopen
@@ -19,9 +19,10 @@ from canopen import objectdictionary as od
 from . import abort_codes, nmt
 from .bus import BusDown, BusStatus, BusSupervisor
 from .sdo import (
+    Access,
     check_node_id,
-    check_request,
     check_size,
+    check_timeout,
     Deadlines,
     resolved,
     run_guarded,
@@ -40,6 +41,10 @@ VERSION = '0.1.0'
 NOTIFIER_CYCLE = 0.05
 
 SHUTTING_DOWN = 'the gateway is shutting down'
+
+# The largest batch: enough for a full sweep of a device's objects, small enough that one
+# answer stays a reasonable message (8 bytes and a short text a result).
+MAX_BATCH = 1024
 
 
 @dataclass(frozen=True)
@@ -173,34 +178,58 @@ class Gateway:
     def sdo_read(self, node_id: int, index: int, subindex: int, max_size: int = 0,
                  timeout: float = 0.0) -> 'Future[SdoResult]':
         """Read ``index:subindex`` of ``node_id`` (0 = the gateway's own dictionary)."""
-        problem = check_request(node_id, index, subindex, timeout)
-        if problem:
-            return resolved(SdoResult.failed(problem))
-        if not 0 <= max_size <= 0xFFFFFFFF:
-            return resolved(SdoResult.failed(
-                f'max_size {max_size} is out of range: allowed 0 (no limit) to 4294967295'))
-        if node_id == 0:
-            return resolved(run_guarded(lambda: self._read_own(index, subindex, max_size)))
-        return self._channel_for(node_id, lambda channel: channel.read(
-            index, subindex, max_size, timeout or self.config.sdo_timeout))
+        return self._single(Access(node_id, index, subindex, max_size=max_size), timeout)
 
     def sdo_write(self, node_id: int, index: int, subindex: int, data: bytes,
                   timeout: float = 0.0) -> 'Future[SdoResult]':
         """Write ``data`` to ``index:subindex`` of ``node_id`` (0 = own dictionary)."""
-        problem = check_request(node_id, index, subindex, timeout)
+        return self._single(Access(node_id, index, subindex, True, bytes(data)), timeout)
+
+    def sdo_batch(self, accesses: Sequence[Access],
+                  timeout: float = 0.0) -> 'Future[List[SdoResult]]':
+        """Run ``accesses``: in order per device, devices in parallel; one result each.
+
+        The timeout bounds the whole batch. Each device's part waits in that device's queue
+        as one request. A batch of more than ``MAX_BATCH`` accesses is refused whole.
+        """
+        problem = check_timeout(timeout)
+        if problem is None and len(accesses) > MAX_BATCH:
+            problem = (f'the batch has {len(accesses)} accesses: at most {MAX_BATCH} are '
+                       f'allowed; nothing was sent')
         if problem:
-            return resolved(SdoResult.failed(problem))
-        if not data:
-            return resolved(SdoResult.failed('data is empty: write at least 1 byte'))
-        refusal = self.config.write_protection.refuses_write(node_id, index)
-        if refusal:
-            return resolved(SdoResult.aborted(abort_codes.LOCAL_CONTROL, refusal))
-        data = bytes(data)
-        if node_id == 0:
-            return resolved(run_guarded(
-                lambda: self.dictionary.set_data(index, subindex, data, check_writable=True)))
-        return self._channel_for(node_id, lambda channel: channel.write(
-            index, subindex, data, timeout or self.config.sdo_timeout))
+            return resolved([SdoResult.failed(problem)] * len(accesses))
+        results: List[Optional[SdoResult]] = [None] * len(accesses)
+        per_device: Dict[int, List[int]] = {}
+        for position, access in enumerate(accesses):
+            refusal = self._refusal(access)
+            if refusal is not None:
+                results[position] = refusal
+            elif access.node_id == 0:
+                results[position] = self._own(access)
+            else:
+                per_device.setdefault(access.node_id, []).append(position)
+        done: Future = Future()
+        parts = {node_id: self._channel_for(node_id, len(positions), lambda channel, p=positions:
+                                            channel.batch([accesses[i] for i in p],
+                                                          timeout or self.config.sdo_timeout))
+                 for node_id, positions in per_device.items()}
+        remaining = [len(parts)]
+        lock = threading.Lock()
+
+        def collect(node_id: int, part: Future) -> None:
+            for position, result in zip(per_device[node_id], part.result(), strict=True):
+                results[position] = result
+            with lock:
+                remaining[0] -= 1
+                finished = remaining[0] == 0
+            if finished:
+                done.set_result(results)
+
+        if not parts:
+            done.set_result(results)
+        for node_id, part in parts.items():
+            part.add_done_callback(lambda future, n=node_id: collect(n, future))
+        return done
 
     def nmt_command(self, node_id: int, command: int) -> NmtResult:
         """Send NMT ``command`` to ``node_id`` (0 = all nodes); checked before sending."""
@@ -235,19 +264,49 @@ class Gateway:
             channel.fail_all(f'the CAN bus is down: {status.reason}')
         self.monitor.lose_all()
 
-    def _read_own(self, index: int, subindex: int, max_size: int) -> bytes:
-        data = self.dictionary.get_data(index, subindex, check_readable=True)
-        check_size(len(data), max_size)
-        return data
+    def _single(self, access: Access, timeout: float) -> 'Future[SdoResult]':
+        problem = check_timeout(timeout)
+        refusal = self._refusal(access) or (SdoResult.failed(problem) if problem else None)
+        if refusal is not None:
+            return resolved(refusal)
+        if access.node_id == 0:
+            return resolved(self._own(access))
+        return self._channel_for(access.node_id, None, lambda channel: channel.single(
+            access, timeout or self.config.sdo_timeout))
 
-    def _channel_for(self, node_id: int, request) -> 'Future[SdoResult]':
+    def _refusal(self, access: Access) -> Optional[SdoResult]:
+        problem = access.problem()
+        if problem:
+            return SdoResult.failed(problem)
+        if access.write:
+            refusal = self.config.write_protection.refuses_write(access.node_id, access.index)
+            if refusal:
+                return SdoResult.aborted(abort_codes.LOCAL_CONTROL, refusal)
+        return None
+
+    def _own(self, access: Access) -> SdoResult:
+        if access.write:
+            return run_guarded(lambda: self.dictionary.set_data(
+                access.index, access.subindex, access.data, check_writable=True))
+
+        def read() -> bytes:
+            data = self.dictionary.get_data(access.index, access.subindex, check_readable=True)
+            check_size(len(data), access.max_size)
+            return data
+        return run_guarded(read)
+
+    def _channel_for(self, node_id: int, count: Optional[int], request) -> Future:
+        """Hand a request to the device's channel; ``count`` accesses (None: one)."""
+        def refused(message: str) -> Future:
+            result = SdoResult.failed(message)
+            return resolved(result if count is None else [result] * count)
+
         status = self.bus.status
         with self._lock:
             if self._closing:
-                return resolved(SdoResult.failed(f'{SHUTTING_DOWN}; nothing was sent'))
+                return refused(f'{SHUTTING_DOWN}; nothing was sent')
             if not status.up:
-                return resolved(SdoResult.failed(
-                    f'the CAN bus is down: {status.reason}; nothing was sent'))
+                return refused(f'the CAN bus is down: {status.reason}; nothing was sent')
             channel = self._channels.get(node_id)
             if channel is None:
                 client = StrictSdoClient(0x600 + node_id, 0x580 + node_id,

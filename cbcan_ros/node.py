@@ -32,10 +32,11 @@ import rclpy.task
 from .gateway import Gateway, GatewayConfig
 from .mailbox import Mailbox
 from .msg import NodeState, NodeStates
+from .msg import SdoResult as SdoResultMessage
 from .nmt import state_name
-from .sdo import check_node_id
+from .sdo import Access, check_node_id
 from .simulation import SimulatedDevice
-from .srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite
+from .srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 from .write_protection import RULE_FORMAT, WriteProtection
 
 NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -111,6 +112,7 @@ class CbcanNode(Node):
         for service_type, name, callback in (
                 (SdoRead, 'sdo_read', self._on_sdo_read),
                 (SdoWrite, 'sdo_write', self._on_sdo_write),
+                (SdoBatch, 'sdo_batch', self._on_sdo_batch),
                 (NmtCommand, 'nmt_command', self._on_nmt_command),
                 (NmtState, 'nmt_state', self._on_nmt_state),
                 (RegisterMailbox, 'plc_mailbox', self._on_plc_mailbox)):
@@ -300,6 +302,17 @@ class CbcanNode(Node):
         response.success = result.success
         response.abort_code = result.abort_code
         response.message = result.message
+        return response
+
+    @_counted_call
+    async def _on_sdo_batch(self, request, response):
+        accesses = [Access(a.node_id, a.index, a.subindex, a.write, bytes(a.data), a.max_size)
+                    for a in request.accesses]
+        results = await self._completion(self.gateway.sdo_batch(accesses, request.timeout))
+        response.results = [
+            SdoResultMessage(success=r.success, abort_code=r.abort_code, message=r.message,
+                             data=list(r.data))
+            for r in results]
         return response
 
     def _on_nmt_command(self, request, response):

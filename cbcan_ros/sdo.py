@@ -18,7 +18,7 @@ import logging
 import math
 import threading
 import time
-from typing import Callable, Optional
+from typing import Callable, List, Optional, Sequence
 
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
@@ -68,15 +68,36 @@ def check_node_id(node_id: int, allowed: str = "0..127 (0 = the gateway's own di
     return None
 
 
-def check_request(node_id: int, index: int, subindex: int, timeout: float) -> Optional[str]:
-    """Return why an SDO request is not valid, or None; checked before anything is sent."""
-    problem = check_node_id(node_id)
-    if problem:
-        return problem
-    if not 0 <= index <= 0xFFFF:
-        return f'index {index} is out of range: allowed 0x0000..0xFFFF'
-    if not 0 <= subindex <= 0xFF:
-        return f'subindex {subindex} is out of range: allowed 0..255'
+@dataclass(frozen=True)
+class Access:
+    """One SDO access: a read (upload) or a write (download) of ``index:subindex``."""
+
+    node_id: int
+    index: int
+    subindex: int
+    write: bool = False
+    data: bytes = b''
+    max_size: int = 0  # reads: largest answer accepted, bytes; 0 = no limit
+
+    def problem(self) -> Optional[str]:
+        """Return why this access is not valid, or None; checked before anything is sent."""
+        problem = check_node_id(self.node_id)
+        if problem:
+            return problem
+        if not 0 <= self.index <= 0xFFFF:
+            return f'index {self.index} is out of range: allowed 0x0000..0xFFFF'
+        if not 0 <= self.subindex <= 0xFF:
+            return f'subindex {self.subindex} is out of range: allowed 0..255'
+        if self.write and not self.data:
+            return 'data is empty: write at least 1 byte'
+        if not self.write and not 0 <= self.max_size <= 0xFFFFFFFF:
+            return (f'max_size {self.max_size} is out of range: allowed 0 (no limit) to '
+                    f'4294967295')
+        return None
+
+
+def check_timeout(timeout: float) -> Optional[str]:
+    """Return why a request's timeout is not valid, or None."""
     if math.isnan(timeout) or not 0.0 <= timeout <= MAX_TIMEOUT:
         return (f'timeout {timeout} s is out of range: allowed 0 (use the sdo.timeout '
                 f'parameter) up to {MAX_TIMEOUT:g} s')
@@ -191,13 +212,13 @@ def run_guarded(transfer: Callable[[], Optional[bytes]]) -> SdoResult:
                                  f'{type(error).__name__}: {error}')
 
 
-def answer(future: Future, result: SdoResult) -> None:
+def answer(future: Future, result) -> None:
     """Resolve ``future`` with ``result`` unless it already has its one answer."""
     with contextlib.suppress(InvalidStateError):
         future.set_result(result)
 
 
-def resolved(result: SdoResult) -> 'Future[SdoResult]':
+def resolved(result) -> Future:
     """Return a future that already holds ``result`` (for answers that need no bus)."""
     future: Future = Future()
     future.set_result(result)
@@ -206,10 +227,15 @@ def resolved(result: SdoResult) -> 'Future[SdoResult]':
 
 @dataclass(eq=False)
 class _Job:
-    run: Callable[[float], SdoResult]
+    run: Callable[[float], object]  # given the deadline, returns the job's answer
     deadline: float
     timeout: float
     future: Future
+    count: Optional[int]  # a batch's number of accesses; None for a single access
+
+    def failed(self, result: SdoResult) -> object:
+        """Return the job's answer when it ends with ``result`` before it ran."""
+        return result if self.count is None else [result] * self.count
 
 
 class Deadlines:
@@ -276,27 +302,23 @@ class SdoChannel:
                                         daemon=True)
         self._thread.start()
 
-    def read(self, index: int, subindex: int, max_size: int,
-             timeout: float) -> 'Future[SdoResult]':
-        """Queue an upload of ``index:subindex``."""
-        def run(deadline: float) -> SdoResult:
-            attempts = self._read_retries + 1
-            while True:
-                # Retries share the timeout: each attempt gets an equal part of what is left.
-                attempt_deadline = time.monotonic() + (deadline - time.monotonic()) / attempts
-                result = self._transfer(index, subindex, attempt_deadline, lambda block: upload(
-                    self._client, index, subindex, max_size, block))
-                attempts -= 1
-                if result.abort_code != abort_codes.TIMEOUT or not attempts:
-                    return result
-        return self._submit(run, timeout)
+    def single(self, access: Access, timeout: float) -> 'Future[SdoResult]':
+        """Queue one access; the future resolves to its :class:`SdoResult`."""
+        return self._submit(lambda deadline: self._access(access, deadline), timeout, None)
 
-    def write(self, index: int, subindex: int, data: bytes,
-              timeout: float) -> 'Future[SdoResult]':
-        """Queue a download of ``data`` to ``index:subindex``; it is sent once at most."""
-        return self._submit(lambda deadline: self._transfer(
-            index, subindex, deadline,
-            lambda block: download(self._client, index, subindex, data, block)), timeout)
+    def batch(self, accesses: Sequence[Access], timeout: float) -> 'Future[List[SdoResult]]':
+        """Queue accesses to run in order as one request; resolves to their results."""
+        def run(deadline: float) -> List[SdoResult]:
+            results = []
+            for access in accesses:
+                if time.monotonic() >= deadline:
+                    results.append(SdoResult.aborted(
+                        abort_codes.TIMEOUT, "the batch's timeout ran out before this access; "
+                                             'nothing was sent'))
+                else:
+                    results.append(self._access(access, deadline))
+            return results
+        return self._submit(run, timeout, len(accesses))
 
     def fail_all(self, reason: str, abort_code: Optional[int] = None) -> None:
         """Answer every queued request with ``reason`` and end the running transfer."""
@@ -304,7 +326,7 @@ class SdoChannel:
             jobs = list(self._queue)
             self._queue.clear()
         for job in jobs:
-            answer(job.future, SdoResult.failed(reason))
+            answer(job.future, job.failed(SdoResult.failed(reason)))
         self._client.cancel(reason, abort_code)
 
     def close(self, reason: str, abort_code: Optional[int]) -> None:
@@ -318,16 +340,17 @@ class SdoChannel:
         """Wait for the worker to end (after :meth:`close`)."""
         self._thread.join(timeout)
 
-    def _submit(self, run: Callable[[float], SdoResult], timeout: float) -> 'Future[SdoResult]':
-        job = _Job(run, time.monotonic() + timeout, timeout, Future())
+    def _submit(self, run: Callable[[float], object], timeout: float,
+                count: Optional[int]) -> Future:
+        job = _Job(run, time.monotonic() + timeout, timeout, Future(), count)
         with self._changed:
             if self._closed is not None:
-                return resolved(self._closed)
+                return resolved(job.failed(self._closed))
             if len(self._queue) >= self._queue_limit:
-                return resolved(SdoResult.failed(
+                return resolved(job.failed(SdoResult.failed(
                     f'node {self.node_id} is busy: {self._queue_limit} requests are already '
                     f'waiting for it (parameter sdo.queue_limit); nothing was sent',
-                    abort_codes.NO_RESOURCE))
+                    abort_codes.NO_RESOURCE)))
             self._queue.append(job)
             self._changed.notify()
         self._deadlines.watch(job.deadline, lambda: self._expire(job))
@@ -338,9 +361,9 @@ class SdoChannel:
             if job not in self._queue:
                 return  # running or answered: the transfer keeps its own deadline
             self._queue.remove(job)
-        answer(job.future, SdoResult.aborted(
+        answer(job.future, job.failed(SdoResult.aborted(
             abort_codes.TIMEOUT, f'waited {job.timeout:g} s behind earlier requests to node '
-                                 f'{self.node_id}; nothing was sent'))
+                                 f'{self.node_id}; nothing was sent')))
 
     def _work(self) -> None:
         while True:
@@ -351,6 +374,21 @@ class SdoChannel:
                     return
                 job = self._queue.popleft()
             answer(job.future, job.run(job.deadline))
+
+    def _access(self, access: Access, deadline: float) -> SdoResult:
+        index, subindex = access.index, access.subindex
+        if access.write:
+            return self._transfer(index, subindex, deadline, lambda block: download(
+                self._client, index, subindex, access.data, block))
+        attempts = self._read_retries + 1
+        while True:
+            # Retries share the timeout: each attempt gets an equal part of what is left.
+            attempt_deadline = time.monotonic() + (deadline - time.monotonic()) / attempts
+            result = self._transfer(index, subindex, attempt_deadline, lambda block: upload(
+                self._client, index, subindex, access.max_size, block))
+            attempts -= 1
+            if result.abort_code != abort_codes.TIMEOUT or not attempts:
+                return result
 
     def _transfer(self, index: int, subindex: int, deadline: float,
                   transfer: Callable[[bool], Optional[bytes]]) -> SdoResult:
