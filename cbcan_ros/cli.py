@@ -9,6 +9,8 @@ Examples (the gateway started by ``make run`` is ``/can0/cbcan``)::
     cbcan_cli state 5
     cbcan_cli states
     cbcan_cli --gateway /robot/can1/cbcan mailbox cbcan 0x0001 ...
+    cbcan_cli sdo-batch r:5:0x1000 w:5:0x2002:0:78563412 r:3:0x1008
+    cbcan_cli sdo-batch --file accesses.txt
 
 Exit status: 0 on success, 1 when the gateway answered with an error (an SDO abort, a
 refused request), 2 when there is no usable gateway (not running, no answer) or the command
@@ -26,10 +28,10 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
 from .mailbox import Cbcan, Me3can
-from .msg import NodeStates
+from .msg import NodeStates, SdoAccess
 from .node import NODE_STATES_QOS, SERVICE_QOS
 from .sdo import MAX_NODE_ID, MAX_TIMEOUT
-from .srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite
+from .srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 
 DEFAULT_GATEWAY = '/can0/cbcan'
 DEFAULT_WAIT = 5.0
@@ -281,6 +283,57 @@ def cmd_sdo_write(client: Client, args) -> int:
     return 0
 
 
+ACCESS_FORMAT = ('r:NODE:INDEX[:SUB] to read, w:NODE:INDEX:SUB:HEXBYTES to write (bytes as '
+                 'on the bus), e.g. r:5:0x1000 w:5:0x2002:0:78563412')
+
+
+def parse_access(text: str) -> SdoAccess:
+    """Parse one batch access (see ``ACCESS_FORMAT``); raise ArgumentTypeError if wrong."""
+    fields = text.strip().split(':')
+    kind = fields[0].lower()
+    if kind not in ('r', 'w') or not 3 <= len(fields) <= (4 if kind == 'r' else 5) or (
+            kind == 'w' and len(fields) != 5):
+        raise argparse.ArgumentTypeError(f'access {text[:40]!r}: expected {ACCESS_FORMAT}')
+    access = SdoAccess(node_id=_node(fields[1]), index=_index(fields[2]),
+                       subindex=_subindex(fields[3]) if len(fields) > 3 else 0,
+                       write=kind == 'w')
+    if access.write:
+        try:
+            access.data = list(encode_value([fields[4]], 'hex'))
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(f'access {text[:40]!r}: {error}') from None
+    return access
+
+
+def cmd_sdo_batch(client: Client, args) -> int:
+    """Run several accesses in one call and print one line per result."""
+    accesses = list(args.accesses)
+    if args.file:
+        try:
+            with open(args.file) as lines:
+                accesses += [parse_access(line) for line in lines
+                             if line.strip() and not line.lstrip().startswith('#')]
+        except (OSError, argparse.ArgumentTypeError) as error:
+            print(f'error: --file {args.file}: {error}', file=sys.stderr)
+            return 2
+    if not accesses:
+        print('error: no accesses: give them as arguments or with --file', file=sys.stderr)
+        return 2
+    response = client.call(SdoBatch, 'sdo_batch', SdoBatch.Request(
+        accesses=accesses, timeout=args.timeout), _answer_within(args.timeout))
+    failed = 0
+    for number, (access, result) in enumerate(zip(accesses, response.results, strict=True), 1):
+        what = (f'{number:>4} {"write" if access.write else "read "} node {access.node_id} '
+                f'0x{access.index:04X}:{access.subindex:02X}')
+        if result.success:
+            data = bytes(result.data)
+            print(f'{what}  ok  {data.hex(" ").upper()}' if data else f'{what}  ok')
+        else:
+            failed += 1
+            print(f'{what}  error: {result.message}')
+    return 1 if failed else 0
+
+
 def cmd_nmt(client: Client, args) -> int:
     """Send an NMT command."""
     response = client.call(NmtCommand, 'nmt_command', NmtCommand.Request(
@@ -392,6 +445,19 @@ def build_parser() -> argparse.ArgumentParser:
     write.add_argument('--timeout', type=_seconds, default=0.0, metavar='S',
                        help="SDO timeout in seconds (default 0: the gateway's sdo.timeout)")
     write.set_defaults(run=cmd_sdo_write)
+
+    batch = commands.add_parser('sdo-batch', help='several reads and writes in one call',
+                                description='Run several SDO accesses in one call: those to '
+                                            'one device in the order given, devices in '
+                                            f'parallel. Each access is {ACCESS_FORMAT}.')
+    batch.add_argument('accesses', type=parse_access, nargs='*', metavar='ACCESS',
+                       help='r:NODE:INDEX[:SUB] or w:NODE:INDEX:SUB:HEXBYTES')
+    batch.add_argument('--file', metavar='FILE',
+                       help='read accesses from FILE too, one a line (# starts a comment)')
+    batch.add_argument('--timeout', type=_seconds, default=0.0, metavar='S',
+                       help="seconds for the whole batch (default 0: the gateway's "
+                            'sdo.timeout)')
+    batch.set_defaults(run=cmd_sdo_batch)
 
     nmt = commands.add_parser('nmt', help='send an NMT command',
                               description='Send an NMT command to a node (0 = all nodes).')

@@ -39,7 +39,7 @@ def devices():
 
 
 def test_installed_node_serves_sdo_nmt_and_the_cli_over_udp_multicast(
-        start_node, client_node, devices):
+        start_node, client_node, devices, tmp_path):
     group, port = random_bus()
     namespace = f'/proc{uuid.uuid4().hex[:8]}'
     gateway_name = f'{namespace}/cbcan'
@@ -99,6 +99,19 @@ def test_installed_node_serves_sdo_nmt_and_the_cli_over_udp_multicast(
                          capture_output=True, text=True, timeout=30)
     assert cli.returncode == 0, cli.stdout + cli.stderr
     assert '92 01 02 00' in cli.stdout and '0x00020192' in cli.stdout, cli.stdout
+
+    accesses = tmp_path / 'accesses.txt'
+    accesses.write_text('# a comment, then a read of what the arguments wrote\nr:5:0x2001\n')
+    cli = subprocess.run([executable('cbcan_cli'), '--gateway', gateway_name, '--wait', '15',
+                          'sdo-batch', 'r:5:0x1000', 'w:5:0x2001:0:3412', 'r:5:0x6000',
+                          '--file', str(accesses)],
+                         capture_output=True, text=True, timeout=30)
+    assert cli.returncode == 1, cli.stdout + cli.stderr  # one access failed
+    lines = cli.stdout.splitlines()
+    assert lines[0].endswith('read  node 5 0x1000:00  ok  92 01 02 00'), lines
+    assert lines[1].endswith('write node 5 0x2001:00  ok'), lines
+    assert 'error: 0x06020000 NOT_EXIST' in lines[2], lines
+    assert lines[3].endswith('read  node 5 0x2001:00  ok  34 12'), lines
 
     gateway.stop()
     assert gateway.process.returncode == 0, 'cbcan_node did not end cleanly on SIGINT'
