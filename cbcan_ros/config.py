@@ -1,0 +1,149 @@
+"""The node's ROS parameters: declared with descriptors, checked, turned into the core's config.
+
+Every parameter is declared here with its description and range, so ``ros2 param describe``
+tells a robotics engineer what it means; a wrong value stops the node at start with a message
+naming the parameter.
+"""
+
+import json
+import os
+from typing import Dict, List
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from .gateway import GatewayConfig
+from .write_protection import RULE_FORMAT, WriteProtection
+
+
+class NodeParameters:
+    """The parameters of one gateway node."""
+
+    def __init__(self, node: Node):
+        self._node = node
+        self._declare_all()
+
+    def _declare(self, name: str, value, description: str, **ranges) -> Parameter:
+        descriptor = ParameterDescriptor(description=description, **ranges)
+        if isinstance(value, Parameter.Type):
+            descriptor.type = value.value
+        return self._node.declare_parameter(name, value, descriptor)
+
+    def _declare_all(self) -> None:
+        self._declare('can.interface', 'virtual',
+                      'python-can interface name: socketcan, pcan, kvaser, slcan, '
+                      'udp_multicast, virtual (in-process only), ...')
+        self._declare('can.channel', 'can0',
+                      'python-can channel: e.g. can0 for socketcan, PCAN_USBBUS1 for pcan, '
+                      'a multicast group address for udp_multicast')
+        self._declare('can.bitrate', 0,
+                      'Bit rate in bit/s for interfaces that set it (pcan, kvaser, slcan); '
+                      '0 leaves the interface as configured',
+                      integer_range=[IntegerRange(from_value=0, to_value=1_000_000, step=0)])
+        self._declare('sdo.timeout', 0.5,
+                      'Seconds a whole SDO request may take (waiting behind other requests '
+                      'to the device included), unless the request gives its own timeout',
+                      floating_point_range=[FloatingPointRange(
+                          from_value=0.001, to_value=60.0, step=0.0)])
+        self._declare('can.options', Parameter.Type.STRING_ARRAY,
+                      'Further python-can bus options as key=value, passed to the interface '
+                      'as they are (values parsed as JSON when they can be), e.g. '
+                      '["sleep_after_open=0", "tty_baudrate=115200"] for slcan')
+        self._declare('sdo.queue_limit', 64,
+                      'Requests that may wait for one device; a request beyond this is '
+                      'answered at once as busy (abort 0x060A0023), nothing is sent',
+                      integer_range=[IntegerRange(from_value=1, to_value=10_000, step=0)])
+        self._declare('sdo.read_retries', 0,
+                      'Times a read that timed out is repeated within its timeout (the '
+                      'timeout is shared equally among the attempts); writes are never '
+                      'repeated',
+                      integer_range=[IntegerRange(from_value=0, to_value=10, step=0)])
+        self._declare('read_only', False,
+                      'Refuse every SDO write and NMT command (abort 0x08000021); nothing '
+                      'is sent')
+        self._declare('sdo.write_allow', Parameter.Type.STRING_ARRAY,
+                      f'Objects that SDO writes may reach, each {RULE_FORMAT}; empty = all. '
+                      'Other writes are refused with abort 0x08000021 and never sent')
+        self._declare('sdo.block_transfer', False,
+                      'Try SDO block transfer first; devices that refuse it get segmented '
+                      'transfers')
+        self._declare('nodes', Parameter.Type.INTEGER_ARRAY,
+                      'Node ids (1..127) the gateway expects; they are listed as '
+                      'NOT_DETECTED until they send a heartbeat')
+        self._declare('heartbeat.timeout', 3.0,
+                      'Seconds without heartbeat, boot-up or guarding reply after which a '
+                      'node is NOT_DETECTED',
+                      floating_point_range=[FloatingPointRange(
+                          from_value=0.01, to_value=3600.0, step=0.0)])
+        self._declare('node_guarding', Parameter.Type.INTEGER_ARRAY,
+                      'Node ids (1..127) without heartbeat producer to poll by node guarding')
+        self._declare('node_guarding_period', 1.0,
+                      'Seconds between node guarding requests to each guarded node',
+                      floating_point_range=[FloatingPointRange(
+                          from_value=0.01, to_value=60.0, step=0.0)])
+        self._declare('state_publish_period', 1.0,
+                      'Seconds between publications of ~/node_states when nothing changes',
+                      floating_point_range=[FloatingPointRange(
+                          from_value=0.01, to_value=3600.0, step=0.0)])
+        self._declare('simulation.devices', Parameter.Type.INTEGER_ARRAY,
+                      'Node ids (1..127) of simulated CANopen devices to put on the bus, for '
+                      'trying the gateway without hardware; empty on a real bus')
+        self._declare('simulation.eds', '',
+                      'EDS file of the simulated devices; empty = the one shipped in config/')
+
+    def gateway_config(self) -> GatewayConfig:
+        """Return the core's configuration; raise ValueError naming a wrong parameter."""
+        value = self.value
+        return GatewayConfig(
+            interface=value('can.interface'),
+            channel=value('can.channel'),
+            bitrate=value('can.bitrate'),
+            sdo_timeout=value('sdo.timeout'),
+            block_transfer=value('sdo.block_transfer'),
+            heartbeat_timeout=value('heartbeat.timeout'),
+            expected_nodes=tuple(self.node_ids('nodes')),
+            guarded_nodes=tuple(self.node_ids('node_guarding')),
+            guard_period=value('node_guarding_period'),
+            queue_limit=value('sdo.queue_limit'),
+            read_retries=value('sdo.read_retries'),
+            write_protection=WriteProtection.from_settings(
+                value('read_only'), self._strings('sdo.write_allow')),
+            bus_options=self._bus_options())
+
+    def _strings(self, name: str) -> List[str]:
+        return list(self._node.get_parameter_or(name, Parameter(name, value=[])).value or [])
+
+    def _bus_options(self) -> Dict[str, object]:
+        options = {}
+        for option in self._strings('can.options'):
+            key, equals, text = option.partition('=')
+            if not equals or not key.strip():
+                raise ValueError(f'parameter can.options: {option!r} is not key=value')
+            try:
+                options[key.strip()] = json.loads(text)
+            except ValueError:
+                options[key.strip()] = text
+        return options
+
+    def value(self, name: str):
+        """Return the value of parameter ``name``."""
+        return self._node.get_parameter(name).value
+
+    def node_ids(self, name: str) -> List[int]:
+        """Return the node ids of an integer-array parameter, checked to be 1..127."""
+        parameter = self._node.get_parameter_or(name, Parameter(name, value=[]))
+        node_ids = list(parameter.value or [])
+        wrong = [node_id for node_id in node_ids if not 1 <= node_id <= 127]
+        if wrong:
+            raise ValueError(f'parameter {name}: node ids {wrong} are out of range 1..127')
+        return node_ids
+
+    def simulation_eds(self) -> str:
+        """Return the EDS file of the simulated devices."""
+        path = self.value('simulation.eds')
+        if path:
+            return path
+        from ament_index_python.packages import get_package_share_directory
+        return os.path.join(get_package_share_directory('cbcan_ros'), 'config',
+                            'simulated_device.eds')
