@@ -24,7 +24,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from . import abort_codes
 from .bus import BusDown
-from .sdo_client import StrictSdoClient, TransferAborted, TransferCancelled
+from .sdo_client import DownloadStream, StrictSdoClient, TransferAborted, TransferCancelled
 
 LOGGER = logging.getLogger(__name__)
 
@@ -177,8 +177,11 @@ def _read_all(client: StrictSdoClient, stream, max_size: int) -> bytes:
 def download(client: StrictSdoClient, index: int, subindex: int, data: bytes,
              block: bool) -> None:
     """Write an object (expedited, segmented or block)."""
-    stream = client.open(index, subindex, 'wb', buffering=0, size=len(data),
-                         block_transfer=block)
+    if block:
+        stream = client.open(index, subindex, 'wb', buffering=0, size=len(data),
+                             block_transfer=True)
+    else:
+        stream = DownloadStream(client, index, subindex, size=len(data))
     try:
         _write_all(stream, data)
     except BaseException:

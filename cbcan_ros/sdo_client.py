@@ -18,15 +18,23 @@ is listed in the README so it can be offered upstream:
 5. Frames shorter than the 8 bytes CiA 301 prescribes for SDO are ignored (canopen let
    ``struct.error`` escape for them), and aborts name the transfer's index and subindex.
 6. A transfer can be cancelled from another thread (bus down, shutdown); it ends at once.
+7. canopen's segmented download stream is not closed once: after a failed transfer, garbage
+   collection closes it again and it sends its end frame in the middle of a later transfer.
+   :class:`DownloadStream` closes once.
+   A stream whose initiation failed is closed silently too.
+8. A response's arrival is the driver's receive timestamp, not the moment the frame is
+   handed on: a receive thread held up by other traffic must not make a frame that was on
+   the bus before a request look like its answer.
 """
 
+import io
 import queue
 import struct
 import threading
 import time
 from typing import Callable, Optional, Union
 
-from canopen.sdo.client import SdoClient
+from canopen.sdo.client import SdoClient, WritableStream
 from canopen.sdo.exceptions import SdoAbortedError
 
 from . import abort_codes
@@ -46,6 +54,8 @@ _TOGGLE = 0x10
 _MUX = struct.Struct('<HB')
 
 IGNORE = 'ignore'
+# A driver timestamp further from now than this is taken to be of another clock.
+PLAUSIBLE_AGE = 5.0
 Verdict = Union[None, str, int]  # None: the answer; IGNORE: not ours; int: abort with code
 
 
@@ -142,8 +152,12 @@ class StrictSdoClient(SdoClient):
     # canopen calls these four from its transfer streams.
 
     def on_response(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        """Queue a response frame with the time it arrived."""
-        self.responses.put((time.monotonic(), bytes(data)))
+        """Queue a response frame with the time it arrived on the bus."""
+        now = time.monotonic()
+        age = time.time() - timestamp
+        if 0.0 < age < PLAUSIBLE_AGE:
+            now -= age
+        self.responses.put((now, bytes(data)))
 
     def send_request(self, request) -> None:
         """Send a request frame, unless the transfer has already ended."""
@@ -244,6 +258,28 @@ class StrictSdoClient(SdoClient):
                 self.ignored_frames += 1
                 continue
             raise self.fail(verdict, f'unexpected answer 0x{frame[0]:02X} from the device')
+
+
+class DownloadStream(WritableStream):
+    """canopen's segmented/expedited download stream, which sends its end frame only once.
+
+    A stream whose initiation failed, or that is closed already, sends nothing when it is
+    closed (again) by garbage collection.
+    """
+
+    def __init__(self, sdo_client, index: int, subindex: int = 0, size: Optional[int] = None):
+        self._initiated = False
+        super().__init__(sdo_client, index, subindex, size)
+        self._initiated = True
+
+    def close(self) -> None:
+        """Close the stream, sending the end of a segmented download if it is due."""
+        if self.closed:
+            return
+        if not self._initiated:
+            io.RawIOBase.close(self)
+            return
+        super().close()
 
 
 def _any_frame(_frame: bytes) -> Verdict:
