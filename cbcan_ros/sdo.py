@@ -286,8 +286,9 @@ class SdoChannel:
 
     At most ``queue_limit`` requests wait for the device; more are refused at once. Each
     request's timeout covers its time in the queue and its transfer. Block transfer is
-    tried first when enabled; a device that refuses to initiate one gets segmented
-    transfers (nothing was transferred, so repeating is safe even for writes).
+    tried first when enabled; a device that does not know it (abort 0x05040001, or a normal
+    upload response) gets segmented transfers from then on; nothing was transferred, so
+    that is safe even for writes.
     """
 
     def __init__(self, client: StrictSdoClient, node_id: int, deadlines: Deadlines,
@@ -403,10 +404,10 @@ class SdoChannel:
                 try:
                     return attempt(True)
                 except TransferAborted as refusal:
-                    if self._client.initiated or refusal.code == abort_codes.TIMEOUT:
+                    # Only a device without block transfer gets a segmented one; any other
+                    # refusal is the device's answer, and a write is never offered twice.
+                    if self._client.initiated or refusal.code != abort_codes.UNKNOWN_COMMAND:
                         raise
-                    # Refused at initiation, so nothing moved: segmented is safe to try.
-                    if refusal.code == abort_codes.UNKNOWN_COMMAND:
-                        self._block = False
+                    self._block = False
             return attempt(False)
         return run_guarded(run)

@@ -290,7 +290,8 @@ def _any_frame(_frame: bytes) -> Verdict:
 _INITIATE_ANSWERS = {
     _CCS_DOWNLOAD: ((0xFF, 0x60),),
     _CCS_UPLOAD: ((0xE0, 0x40),),
-    _CCS_BLOCK_UPLOAD: ((0xE3, 0xC0),),
+    # Block upload: bit 2 says CRC, bit 1 says a size follows, bit 0 is the subcommand.
+    _CCS_BLOCK_UPLOAD: ((0xE1, 0xC0),),
     _CCS_BLOCK_DOWNLOAD: ((0xE3, 0xA0),),
 }
 
