@@ -58,6 +58,11 @@ def abort_words(code: int) -> Block:
     return [code & WORD, code >> 16 & WORD]
 
 
+def _quoted(text: str, limit: int = 32) -> str:
+    """Return ``text`` quoted and cut to ``limit`` characters: never echo unbounded input."""
+    return repr(text[:limit]) + ('...' if len(text) > limit else '')
+
+
 def _object(node_id: int, index: int, subindex: int) -> str:
     return f'node {node_id} object 0x{index:04X}:{subindex}'
 
@@ -338,7 +343,7 @@ class Mailbox:
         name = block_format or DEFAULT_FORMAT
         translator_type = FORMATS.get(name)
         if translator_type is None:
-            return registers, (f'unknown format {block_format!r}: allowed "cbcan" '
+            return registers, (f'unknown format {_quoted(block_format)}: allowed "cbcan" '
                                f'(Fatek FBs-CBCAN, {Cbcan.LENGTH} registers, the default '
                                f'when empty) or "me3can" (Mitsubishi ME3CAN1-L, '
                                f'{Me3can.LENGTH} registers)')

@@ -47,26 +47,40 @@ def state_name(state: int) -> str:
     return STATE_NAMES.get(state, f'UNKNOWN_{state}')
 
 
+def reported_state_name(state: int) -> str:
+    """Return the name of a state byte a node sent; 6 is no CiA 301 state, so UNKNOWN_6.
+
+    NOT_DETECTED (6) is the gateway's own word for a silent node: a node that sent 6 has
+    spoken, so it is not "not detected".
+    """
+    return f'UNKNOWN_{state}' if state == NOT_DETECTED else state_name(state)
+
+
 @dataclass(frozen=True)
 class NodeStatus:
-    """What is known of one node: its last reported state and when it last spoke."""
+    """What is known of one node: its last reported state and when it last spoke.
+
+    ``state`` is NOT_DETECTED while the node is silent, else the state byte it reported.
+    """
 
     node_id: int
     state: int
     last_seen: Optional[float]  # time.time() of the last message; None if never seen
     last_seen_age: float        # seconds since then; -1 if never seen
+    detected: bool = False
 
     @property
     def state_name(self) -> str:
         """Return the state's name, e.g. 'OPERATIONAL'."""
-        return state_name(self.state)
+        return reported_state_name(self.state) if self.detected else 'NOT_DETECTED'
 
 
 class _Entry:
-    __slots__ = ('state', 'last_monotonic', 'last_wall')
+    __slots__ = ('state', 'detected', 'last_monotonic', 'last_wall')
 
     def __init__(self):
         self.state = NOT_DETECTED
+        self.detected = False
         self.last_monotonic: Optional[float] = None
         self.last_wall: Optional[float] = None
 
@@ -123,9 +137,11 @@ class HeartbeatMonitor:
 
     @staticmethod
     def _status(node_id: int, entry: _Entry, now: float) -> NodeStatus:
+        state = entry.state if entry.detected else NOT_DETECTED
         if entry.last_monotonic is None:
-            return NodeStatus(node_id, entry.state, None, -1.0)
-        return NodeStatus(node_id, entry.state, entry.last_wall, now - entry.last_monotonic)
+            return NodeStatus(node_id, state, None, -1.0, entry.detected)
+        return NodeStatus(node_id, state, entry.last_wall, now - entry.last_monotonic,
+                          entry.detected)
 
     def _on_frame(self, can_id: int, data: bytearray, _timestamp: float) -> None:
         if not data:
@@ -137,8 +153,9 @@ class HeartbeatMonitor:
             is_new = entry is None
             if is_new:
                 entry = self._nodes[node_id] = _Entry()
-            changed = is_new or entry.state != state
+            changed = is_new or not entry.detected or entry.state != state
             entry.state = state
+            entry.detected = True
             entry.last_monotonic = time.monotonic()
             entry.last_wall = time.time()
             if changed:
@@ -149,9 +166,9 @@ class HeartbeatMonitor:
     def lose_all(self) -> None:
         """Report every node NOT_DETECTED (the bus is down: nothing can be heard)."""
         with self._changed:
-            lost = [entry for entry in self._nodes.values() if entry.state != NOT_DETECTED]
+            lost = [entry for entry in self._nodes.values() if entry.detected]
             for entry in lost:
-                entry.state = NOT_DETECTED
+                entry.detected = False
         if lost:
             self._notify()
 
@@ -162,11 +179,11 @@ class HeartbeatMonitor:
                 timed_out = False
                 next_deadline = None
                 for entry in self._nodes.values():
-                    if entry.last_monotonic is None or entry.state == NOT_DETECTED:
+                    if not entry.detected:
                         continue
                     deadline = entry.last_monotonic + self._timeout
                     if deadline <= now:
-                        entry.state = NOT_DETECTED
+                        entry.detected = False
                         timed_out = True
                     elif next_deadline is None or deadline < next_deadline:
                         next_deadline = deadline
