@@ -91,6 +91,7 @@ class CbcanNode(Node):
         super().__init__('cbcan', **kwargs)
         self._calls_in_progress = 0
         self._calls_lock = threading.Lock()
+        self._destroyed = False
         self._log_handler = _RosLogHandler(self.get_logger())
         core_logger = logging.getLogger(__package__)
         core_logger.setLevel(logging.INFO)
@@ -140,7 +141,10 @@ class CbcanNode(Node):
             time.sleep(0.005)
 
     def destroy_node(self) -> None:
-        """Answer waiting calls, close the bus, stop the simulated devices."""
+        """Answer waiting calls, close the bus, stop the simulated devices (once)."""
+        if self._destroyed:
+            return
+        self._destroyed = True
         self.shut_down_gateway()
         for device in self._simulated:
             device.stop()

@@ -227,3 +227,28 @@ def test_block_transfer_falls_back_for_devices_without_it(make_gateway):
     assert bytes(read.data) == BIG
     assert bytes(gateway.call('sdo_read', node_id=2, index=0x1008, subindex=0).data) == (
         b'cbcan simulated device')
+
+
+def test_destroy_node_answers_waiting_calls_and_sends_no_request(gateway):
+    bus = gateway.raw_bus()
+    try:
+        calls = [gateway.call_async('sdo_read', node_id=9, index=0x1000, subindex=0,
+                                    timeout=20.0) for _ in range(4)]
+        calls += [gateway.call_async('sdo_write', node_id=9, index=0x2002, subindex=0,
+                                     data=[1, 2, 3, 4], timeout=20.0) for _ in range(4)]
+        first = wait_until(lambda: bus.recv(0.05), 5.0, 'the first request on the bus')
+        assert first.arbitration_id == 0x609 and first.data[0] == 0x40
+        started = time.monotonic()
+        gateway.node.destroy_node()
+        answers = [wait_for_future(call, 2.0) for call in calls]
+        assert time.monotonic() - started < 2.0
+        later = []
+        while (message := bus.recv(0.2)) is not None:
+            later.append(message)
+    finally:
+        bus.shutdown()
+    for answer in answers:
+        assert not answer.success and 'shutting down' in answer.message, answer.message
+    sdo = [m for m in later if m.arbitration_id == 0x609]
+    assert [m.data[0] for m in sdo] == [0x80], 'only the abort of the running read'
+    assert struct.unpack_from('<I', sdo[0].data, 4)[0] == 0x08000022
