@@ -9,6 +9,7 @@ import json
 import os
 from typing import Dict, List
 
+import can
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -95,8 +96,12 @@ class NodeParameters:
     def gateway_config(self) -> GatewayConfig:
         """Return the core's configuration; raise ValueError naming a wrong parameter."""
         value = self.value
+        interface = value('can.interface')
+        if interface not in can.interfaces.BACKENDS:
+            raise ValueError(f'parameter can.interface: {interface[:40]!r} is not a python-can '
+                             f'interface: allowed {", ".join(sorted(can.interfaces.BACKENDS))}')
         return GatewayConfig(
-            interface=value('can.interface'),
+            interface=interface,
             channel=value('can.channel'),
             bitrate=value('can.bitrate'),
             sdo_timeout=value('sdo.timeout'),

@@ -248,8 +248,8 @@ def main(args=None) -> int:
         signal.signal(signum, on_signal)
     # rclpy's own handler would shut the context down first, and a node without a context
     # can answer nobody: shutdown is ours, in order.
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         node = CbcanNode()
     except Exception as error:  # noqa: BLE001 - a configuration error ends the process cleanly
         print(f'cbcan_node: cannot start: {error}', file=sys.stderr)

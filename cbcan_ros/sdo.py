@@ -13,6 +13,7 @@ from concurrent.futures import Future, InvalidStateError
 import contextlib
 from dataclasses import dataclass
 import heapq
+import io
 import itertools
 import logging
 import math
@@ -123,10 +124,10 @@ def _write_all(stream, data: bytes) -> None:
 
 
 def _close_after_failure(client: StrictSdoClient, stream) -> None:
-    # Closing a failed stream must not send its closing frames; the abort goes first.
+    # The transfer ends with an abort (if the device heard of it); the stream is then marked
+    # closed without canopen's closing frames and log lines, now and at garbage collection.
     client.abort(abort_codes.GENERAL_ERROR)
-    with contextlib.suppress(Exception):
-        stream.close()
+    io.RawIOBase.close(stream)
 
 
 def upload(client: StrictSdoClient, index: int, subindex: int, max_size: int,
@@ -157,7 +158,9 @@ def _read_all(client: StrictSdoClient, stream, max_size: int) -> bytes:
             check_size(announced, max_size)
         while True:
             part = stream.read(7)
-            if not part:
+            # A segment may carry no data and still say more follow (c = 0): only the
+            # stream's own end (canopen's _done, set by the last segment) ends the upload.
+            if not part and getattr(stream, '_done', True):
                 break
             parts.append(part)
             received += len(part)

@@ -109,6 +109,7 @@ class StrictSdoClient(SdoClient):
             self.ignored_frames = 0
             self._aborted = None
             self._cancelled = None
+            self._abort_on_cancel = None
             self.responses = queue.Queue()
         try:
             return run()
@@ -162,12 +163,10 @@ class StrictSdoClient(SdoClient):
     def send_request(self, request) -> None:
         """Send a request frame, unless the transfer has already ended."""
         with self._lock:
-            ended = self._cancelled or self._aborted
             if self._kind is None:
                 self._kind = request[0] >> 5
             self._sent_at = time.monotonic()
-        if ended is not None:
-            raise ended
+        self._raise_if_ended()
         self.network.send_message(self.rx_cobid, request)
         self._sent_any = True
 
@@ -184,12 +183,28 @@ class StrictSdoClient(SdoClient):
         return self._await(_any_frame)
 
     def abort(self, abort_code: int = abort_codes.GENERAL_ERROR) -> None:
-        """Abort the transfer on the bus, once; later aborts keep the first code."""
+        """Abort the transfer on the bus, once; later aborts keep the first code.
+
+        A transfer of which nothing was sent is ended without a frame: the device never
+        heard of it.
+        """
         with self._lock:
             if self._aborted is not None or self._cancelled is not None:
                 return
             self._aborted = TransferAborted(abort_code, by_device=False)
-        self._send_abort(abort_code)
+        if self._sent_any:
+            self._send_abort(abort_code)
+
+    def _raise_if_ended(self) -> None:
+        """Raise the end of the transfer, if it has ended; a cancellation aborts it once."""
+        with self._lock:
+            ended = self._cancelled or self._aborted
+            code, self._abort_on_cancel = self._abort_on_cancel, None
+        if ended is None:
+            return
+        if ended is self._cancelled and code is not None and self._sent_any:
+            self._send_abort(code)
+        raise ended
 
     # The checks.
 
@@ -230,13 +245,8 @@ class StrictSdoClient(SdoClient):
                                f'request were ignored')
                 raise self.fail(abort_codes.TIMEOUT, detail) from None
             if frame is _Cancel:
-                with self._lock:
-                    cancelled, code = self._cancelled, self._abort_on_cancel
-                if cancelled is None:
-                    continue
-                if code is not None and self._sent_any:
-                    self._send_abort(code)
-                raise cancelled
+                self._raise_if_ended()
+                continue
             if arrived < self._sent_at or len(frame) < 8:
                 self.ignored_frames += 1
                 continue
