@@ -1,8 +1,9 @@
 """The ROS 2 node: maps parameters, services and the node-state topic onto the gateway core.
 
-Service callbacks are coroutines. An SDO is handed to the device's worker thread and the
-callback awaits its completion, so the executor keeps serving other calls, timers and
-publishers while a slow device takes its time.
+An SDO call is handed to the device's worker thread and answered from there when it is done
+(``deferred.py``), so the executor keeps serving other calls, timers and publishers while a
+slow device takes its time, and holds nothing per waiting call. The mailbox, which chains
+several SDOs, is a coroutine that awaits them.
 
 Shutdown (SIGINT, SIGTERM or ``destroy_node``) answers every waiting call before rclpy goes
 away: ROS can only deliver an answer while the node still exists.
@@ -14,7 +15,6 @@ import os
 import signal
 import sys
 import threading
-import time
 
 from builtin_interfaces.msg import Time
 import rclpy
@@ -26,6 +26,7 @@ from rclpy.signals import SignalHandlerOptions
 import rclpy.task
 
 from .config import NodeParameters
+from .deferred import CallsInProgress, DeferredService
 from .gateway import Gateway
 from .mailbox import Mailbox
 from .msg import NodeState, NodeStates
@@ -71,17 +72,19 @@ class _RosLogHandler(logging.Handler):
             self._logger.info(record.getMessage())
 
 
-def _counted_call(callback):
-    """Count the calls in progress, so shutdown can wait for their answers to leave."""
-    async def counted(self, request, response):
-        with self._calls_lock:
-            self._calls_in_progress += 1
-        try:
-            return await callback(self, request, response)
-        finally:
-            with self._calls_lock:
-                self._calls_in_progress -= 1
-    return counted
+def _fill_result(result, response) -> None:
+    """Write an SdoResult (or a batch's list of them) into a service response."""
+    if isinstance(result, list):
+        response.results = [
+            SdoResultMessage(success=r.success, abort_code=r.abort_code, message=r.message,
+                             data=list(r.data))
+            for r in result]
+        return
+    response.success = result.success
+    response.abort_code = result.abort_code
+    response.message = result.message
+    if hasattr(response, 'data'):
+        response.data = list(result.data)
 
 
 class CbcanNode(Node):
@@ -89,8 +92,7 @@ class CbcanNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('cbcan', **kwargs)
-        self._calls_in_progress = 0
-        self._calls_lock = threading.Lock()
+        self._calls = CallsInProgress()
         self._destroyed = False
         self._log_handler = _RosLogHandler(self.get_logger())
         core_logger = logging.getLogger(__package__)
@@ -106,16 +108,20 @@ class CbcanNode(Node):
         for device in self._simulated:
             device.start()
 
-        calls = ReentrantCallbackGroup()
+        # Calls must overlap: a slow device never holds up the others or the state topic.
+        options = dict(qos_profile=SERVICE_QOS, callback_group=ReentrantCallbackGroup())
+        self._deferred = [
+            DeferredService(self, service_type, f'~/{name}', start, _fill_result, self._calls,
+                            **options)
+            for service_type, name, start in (
+                (SdoRead, 'sdo_read', self._start_read),
+                (SdoWrite, 'sdo_write', self._start_write),
+                (SdoBatch, 'sdo_batch', self._start_batch))]
         for service_type, name, callback in (
-                (SdoRead, 'sdo_read', self._on_sdo_read),
-                (SdoWrite, 'sdo_write', self._on_sdo_write),
-                (SdoBatch, 'sdo_batch', self._on_sdo_batch),
                 (NmtCommand, 'nmt_command', self._on_nmt_command),
                 (NmtState, 'nmt_state', self._on_nmt_state),
                 (RegisterMailbox, 'plc_mailbox', self._on_plc_mailbox)):
-            self.create_service(service_type, f'~/{name}', callback, qos_profile=SERVICE_QOS,
-                                callback_group=calls)
+            self.create_service(service_type, f'~/{name}', callback, **options)
         self._mailbox = Mailbox(self.gateway, self._completion)
 
         self._states_publisher = self.create_publisher(NodeStates, '~/node_states',
@@ -132,13 +138,11 @@ class CbcanNode(Node):
     def shut_down_gateway(self) -> None:
         """Answer every waiting call ("shutting down"), abort running transfers, close the bus.
 
-        While the executor still spins, the answers reach their callers; this waits up to
-        ``ANSWER_GRACE`` seconds for them to leave.
+        SDO answers leave from the thread that resolves them; a mailbox call needs the
+        executor to finish. This waits up to ``ANSWER_GRACE`` seconds for all to leave.
         """
         self.gateway.stop()
-        deadline = time.monotonic() + ANSWER_GRACE
-        while self._calls_in_progress and time.monotonic() < deadline:
-            time.sleep(0.005)
+        self._calls.wait_until_idle(ANSWER_GRACE)
 
     def destroy_node(self) -> None:
         """Answer waiting calls, close the bus, stop the simulated devices (once)."""
@@ -165,37 +169,18 @@ class CbcanNode(Node):
         future.add_done_callback(hand_over)
         return await done
 
-    @_counted_call
-    async def _on_sdo_read(self, request, response):
-        result = await self._completion(self.gateway.sdo_read(
-            request.node_id, request.index, request.subindex, request.max_size,
-            request.timeout))
-        response.success = result.success
-        response.abort_code = result.abort_code
-        response.message = result.message
-        response.data = list(result.data)
-        return response
+    def _start_read(self, request) -> ConcurrentFuture:
+        return self.gateway.sdo_read(request.node_id, request.index, request.subindex,
+                                     request.max_size, request.timeout)
 
-    @_counted_call
-    async def _on_sdo_write(self, request, response):
-        result = await self._completion(self.gateway.sdo_write(
-            request.node_id, request.index, request.subindex, bytes(request.data),
-            request.timeout))
-        response.success = result.success
-        response.abort_code = result.abort_code
-        response.message = result.message
-        return response
+    def _start_write(self, request) -> ConcurrentFuture:
+        return self.gateway.sdo_write(request.node_id, request.index, request.subindex,
+                                      bytes(request.data), request.timeout)
 
-    @_counted_call
-    async def _on_sdo_batch(self, request, response):
-        accesses = [Access(a.node_id, a.index, a.subindex, a.write, bytes(a.data), a.max_size)
-                    for a in request.accesses]
-        results = await self._completion(self.gateway.sdo_batch(accesses, request.timeout))
-        response.results = [
-            SdoResultMessage(success=r.success, abort_code=r.abort_code, message=r.message,
-                             data=list(r.data))
-            for r in results]
-        return response
+    def _start_batch(self, request) -> ConcurrentFuture:
+        return self.gateway.sdo_batch(
+            [Access(a.node_id, a.index, a.subindex, a.write, bytes(a.data), a.max_size)
+             for a in request.accesses], request.timeout)
 
     def _on_nmt_command(self, request, response):
         result = self.gateway.nmt_command(request.node_id, request.command)
@@ -219,11 +204,14 @@ class CbcanNode(Node):
         response.last_seen_age = status.last_seen_age
         return response
 
-    @_counted_call
     async def _on_plc_mailbox(self, request, response):
-        response.registers, response.message = await self._mailbox.execute(
-            request.format, list(request.registers))
-        return response
+        self._calls.begin()
+        try:
+            response.registers, response.message = await self._mailbox.execute(
+                request.format, list(request.registers))
+            return response
+        finally:
+            self._calls.end()
 
     def _publish_states(self) -> None:
         message = NodeStates(stamp=self.get_clock().now().to_msg())
