@@ -81,7 +81,8 @@ class StrictSdoClient(SdoClient):
 
     def __init__(self, rx_cobid: int, tx_cobid: int, od):
         super().__init__(rx_cobid, tx_cobid, od)
-        self._lock = threading.Lock()
+        # Reentrant: garbage collection may finalize a stream inside a locked section.
+        self._lock = threading.RLock()
         self._mux = (0, 0)
         self._kind: Optional[int] = None  # the initiating ccs; None before the initiation
         self._deadline = 0.0
