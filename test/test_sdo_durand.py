@@ -166,10 +166,12 @@ def frames_until_marker(gateway, bus: can.BusABC, node_id: int, timeout: float =
                 0x2F, 0xC2, 0xC6):
             # python-can's virtual bus hands a frame to its receivers one after another, so
             # under load a device frame can reach this bus after the gateway's next request
-            # although the gateway had it before: take the device's late frames too.
+            # although the gateway had it before: take the device's late aborts too.
             while (late := bus.recv(0.1)) is not None:
-                if late.arbitration_id == tx:
-                    frames.append((tx, bytes(late.data)))
+                late_data = bytes(late.data)
+                if late.arbitration_id == tx and late_data[0] == ABORT and \
+                        late_data[1:4] != MARKER_MUX:
+                    frames.append((tx, late_data))
             return frames
         frames.append((message.arbitration_id, data))
     raise AssertionError('the marker request was not seen on the bus')
