@@ -1,325 +1,380 @@
-"""Where the time of an SDO read goes: raw canopen, the gateway core, rclpy, the gateway service.
+"""Where the time of the gateway goes: every row side by side, in one run, on this machine.
 
-Run with ``make bench`` (or ``tools/ros-env python bench/bench_sdo.py --count 2000``). All
-rows are measured in one run, against the same simulated devices on one python-can
-``virtual`` bus:
+Run with ``make bench`` (``make bench ARGS=--quick`` for a shorter run). Two columns, measured
+one after the other, each with its rows alternating call by call or round by round:
 
-* raw     python-canopen ``RemoteNode.sdo.upload(0x1000, 0)``, in the server process
-* core    ``Gateway.sdo_read(node, 0x1000, 0).result()`` of the running gateway node
-* trigger a bare rclpy std_srvs/Trigger service (the floor of any rclpy service call)
-* service ``sdo_read`` of 0x1000 through the gateway node (CbcanNode)
+* ``virtual``: ONE process on a python-can ``virtual`` bus: simulated devices, the gateway
+  node (CbcanNode), a bare Trigger node, raw python-canopen and the client
+  (``bench_client.py virtual``);
+* ``udp_multicast``: separate processes, as users run it: the simulated devices
+  (``bench_devices.py``), a bare Trigger server (``bench_trigger.py``), the installed
+  ``cbcan_node``, and the client (``bench_client.py udp_multicast``), which also does the raw
+  python-canopen rows against the device process. For the load rows the device process makes
+  way for a load process (node 1 plus the heartbeats of further nodes) and a bare python-can
+  receiver shows what receiving the frames alone costs.
 
-Setup of trigger and service, identical for both: the server process hosts the CbcanNode
-and a bare Trigger node, each in its own SingleThreadedExecutor spinning in its own thread
-(the executor ``cbcan_node`` uses). The client is a separate process (as the CLI and other
-nodes are): one node, one SingleThreadedExecutor, ``call_async`` then ``spin_once`` until
-the future is done, SERVICE_QOS. The client alternates trigger and service calls,
-and the server alternates raw and core reads, so drift of the machine hits both alike.
-
-Throughput: bursts of concurrent calls spread over devices 2, 3 and 5, all sent at once
-and awaited together; calls/s = calls / time until the last answer.
+This script starts and stops every process, measures CPU and RSS from /proc, prints the
+table and writes ``bench/results/latest.md`` and ``latest.png``. It is a script, not a test:
+a target that is not met is reported, never fatal. Ctrl-C stops every child process and
+reports what was measured so far.
 """
 
 import argparse
+import ctypes
 import json
 import os
+import queue
 import random
+import shutil
+import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
+from typing import Dict, List, Optional
 import uuid
 
-import canopen
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.parameter import Parameter
-from std_srvs.srv import Trigger
+from bench_report import machine_info, write_report
+from bench_util import (
+    BLOCK_DEVICE,
+    MARK,
+    proc_cpu_seconds,
+    proc_rss_mb,
+    proc_udp_drops,
+    progress,
+    udp_receive_drops,
+)
 
-from cbcan_ros.node import CbcanNode, SERVICE_QOS
-from cbcan_ros.srv import SdoRead
+HERE = os.path.dirname(os.path.abspath(__file__))
+COLUMN_TIMEOUT = 400.0    # s without any message from a column's client: it is stuck
+START_TIMEOUT = 60.0      # s for a helper process to say it is ready
+STOP_TIMEOUT = 5.0
+PR_SET_PDEATHSIG = 1
 
-DEVICES = (2, 3, 5)
-DEVICE_TYPE = bytes([0x92, 0x01, 0x02, 0x00])  # 0x1000 of config/simulated_device.eds
-WARMUP = 50
-MAX_BURST = 250  # SERVICE_QOS keeps 256 requests; a larger burst would lose some
-
-
-def percentile(samples, fraction: float) -> float:
-    """Return the ``fraction`` quantile of ``samples`` (linear interpolation)."""
-    ordered = sorted(samples)
-    position = (len(ordered) - 1) * fraction
-    low = int(position)
-    high = min(low + 1, len(ordered) - 1)
-    return ordered[low] + (ordered[high] - ordered[low]) * (position - low)
-
-
-def summary(samples) -> dict:
-    """Return p50 and p90 of ``samples`` (seconds) in milliseconds."""
-    return {'p50': percentile(samples, 0.5) * 1e3, 'p90': percentile(samples, 0.9) * 1e3,
-            'n': len(samples)}
+try:
+    _prctl = ctypes.CDLL('libc.so.6', use_errno=True).prctl
+except OSError:  # not Linux: children then rely on the cleanup below alone
+    _prctl = None
 
 
-# ---------------------------------------------------------------- client process
+def _die_with_parent() -> None:
+    # Runs in the child before exec: if this script is killed outright, its children follow.
+    if _prctl is not None:
+        _prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
-def progress(text: str) -> None:
-    """Say on stderr what the benchmark is doing."""
-    print(f'bench: {text}', file=sys.stderr, flush=True)
+
+class ChildFailed(Exception):
+    """A child process ended, or said nothing in time."""
 
 
-def run_client(namespace: str, count: int, burst: int, rounds: int) -> None:
-    """Measure trigger and service from this (separate) process; print JSON results."""
-    rclpy.init()
-    node = rclpy.create_node(f'bench_client_{uuid.uuid4().hex[:8]}')
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    trigger = node.create_client(Trigger, f'{namespace}/trigger', qos_profile=SERVICE_QOS)
-    sdo_read = node.create_client(SdoRead, f'{namespace}/cbcan/sdo_read',
-                                  qos_profile=SERVICE_QOS)
-    for client in (trigger, sdo_read):
-        if not client.wait_for_service(timeout_sec=20.0):
-            raise SystemExit(f'bench client: {client.srv_name} not found')
+class Child:
+    """A child process in a session of its own; its ``@@`` lines arrive on a queue.
 
-    failures = []
-    progress('client: services found, measuring latency')
+    Everything else it prints goes to a log file, shown when something fails.
+    """
 
-    def call(client, request, timeout: float = 5.0):
-        # Not executor.spin_until_future_complete: in rclpy 7.1.6 (Jazzy) every call leaves
-        # about three finished-callback tasks in the executor, and each later spin walks
-        # them all: repeated calls get slower without bound (3.8 ms per call after 300 calls,
-        # 78 ms after 1500; ros2/rclpy#1374). spin_once leaves nothing behind.
-        future = client.call_async(request)
+    running: List['Child'] = []
+
+    def __init__(self, name: str, argv: List[str], env: Optional[Dict] = None):
+        self.name = name
+        self.messages: 'queue.Queue[Optional[dict]]' = queue.Queue()
+        self.log = tempfile.TemporaryFile(mode='w+')
+        self.process = subprocess.Popen(
+            argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            text=True, env=env, start_new_session=True, preexec_fn=_die_with_parent)
+        self._log_lock = threading.Lock()
+        Child.running.append(self)
+        threading.Thread(target=self._read, daemon=True).start()
+        threading.Thread(target=self._read_errors, daemon=True).start()
+
+    @property
+    def pid(self) -> int:
+        """Return the process id."""
+        return self.process.pid
+
+    def _keep(self, line: str) -> None:
+        with self._log_lock:
+            self.log.write(line)
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            if line.startswith(MARK):
+                try:
+                    self.messages.put(json.loads(line[len(MARK):]))
+                    continue
+                except ValueError:
+                    pass
+            self._keep(line)
+        self.messages.put(None)
+
+    def _read_errors(self) -> None:
+        for line in self.process.stderr:
+            if line.startswith('bench: '):
+                sys.stderr.write(line)  # progress, shown as it happens
+            self._keep(line)
+
+    def next(self, timeout: float) -> dict:
+        """Return the next message; raise ChildFailed if the child ended or stayed silent."""
+        try:
+            message = self.messages.get(timeout=timeout)
+        except queue.Empty:
+            raise ChildFailed(f'{self.name} said nothing for {timeout:g} s') from None
+        if message is None:
+            self.messages.put(None)  # later calls see the end too
+            raise ChildFailed(f'{self.name} ended (status {self.process.wait()})')
+        return message
+
+    def expect(self, key: str, timeout: float) -> dict:
+        """Return the next message holding ``key`` (others are dropped)."""
         deadline = time.monotonic() + timeout
-        while not future.done():
-            if time.monotonic() > deadline:
-                raise SystemExit(f'bench client: no answer from {client.srv_name}')
-            executor.spin_once(timeout_sec=0.1)
-        return future.result()
+        while True:
+            message = self.next(max(0.01, deadline - time.monotonic()))
+            if key in message:
+                return message
 
-    def read_request(node_id: int = 5):
-        return SdoRead.Request(node_id=node_id, index=0x1000, subindex=0)
+    def tell(self, message: dict) -> None:
+        """Send one message on the child's standard input."""
+        try:
+            self.process.stdin.write(json.dumps(message) + '\n')
+            self.process.stdin.flush()
+        except (BrokenPipeError, ValueError) as error:
+            raise ChildFailed(f'{self.name} does not listen any more: {error}') from None
 
-    def check(response) -> None:
-        if not response.success or bytes(response.data) != DEVICE_TYPE:
-            failures.append(response.message or bytes(response.data).hex())
+    def output(self, lines: int = 25) -> str:
+        """Return the last ``lines`` lines the child printed."""
+        with self._log_lock:
+            self.log.flush()
+            self.log.seek(0)
+            text = self.log.read().splitlines()[-lines:]
+            self.log.seek(0, os.SEEK_END)
+        return '\n'.join(f'    {self.name}| {line}' for line in text)
 
-    for _ in range(WARMUP):
-        call(trigger, Trigger.Request())
-        check(call(sdo_read, read_request()))
+    def stop(self) -> None:
+        """Stop the child: SIGINT (as Ctrl-C), then SIGTERM, then SIGKILL, by its pid."""
+        if self.process.poll() is None:
+            for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+                try:
+                    self.process.send_signal(signum)
+                    self.process.wait(STOP_TIMEOUT)
+                    break
+                except subprocess.TimeoutExpired:
+                    continue
+                except ProcessLookupError:
+                    break
+        if self.process.stdin:
+            try:
+                self.process.stdin.close()
+            except OSError:
+                pass
+        if self in Child.running:
+            Child.running.remove(self)
 
-    trigger_times, service_times = [], []
-    for _ in range(count):
-        start = time.perf_counter()
-        call(trigger, Trigger.Request())
-        middle = time.perf_counter()
-        check(call(sdo_read, read_request()))
-        end = time.perf_counter()
-        trigger_times.append(middle - start)
-        service_times.append(end - middle)
-
-    def throughput(client, make_request, is_sdo: bool) -> float:
-        total_calls, total_time = 0, 0.0
-        for _ in range(rounds):
-            start = time.perf_counter()
-            futures = [client.call_async(make_request(i)) for i in range(burst)]
-            deadline = start + 30.0
-            while not all(future.done() for future in futures):
-                if time.perf_counter() > deadline:
-                    raise SystemExit(f'bench client: burst on {client.srv_name} unanswered')
-                executor.spin_once(timeout_sec=0.05)
-            total_time += time.perf_counter() - start
-            total_calls += burst
-            if is_sdo:
-                for future in futures:
-                    check(future.result())
-        return total_calls / total_time
-
-    progress('client: measuring throughput')
-    results = {
-        'trigger': summary(trigger_times),
-        'service': summary(service_times),
-        'service_throughput': throughput(
-            sdo_read, lambda i: read_request(DEVICES[i % len(DEVICES)]), True),
-        'trigger_throughput': throughput(trigger, lambda i: Trigger.Request(), False),
-        'failures': failures[:5],
-        'failure_count': len(failures),
-    }
-    executor.shutdown(timeout_sec=1.0)
-    node.destroy_node()
-    rclpy.try_shutdown()
-    print(json.dumps(results), flush=True)
+    @classmethod
+    def stop_all(cls) -> None:
+        """Stop every child still running, newest first."""
+        for child in reversed(list(cls.running)):
+            child.stop()
 
 
-# ---------------------------------------------------------------- server process
+def python(script: str, *arguments: str) -> List[str]:
+    """Return the command line running one of the benchmark's scripts."""
+    return [sys.executable, os.path.join(HERE, script), *arguments]
 
-class TriggerNode:
-    """A bare std_srvs/Trigger server: the least an rclpy service can do."""
 
-    def __init__(self, namespace: str):
-        self.node = rclpy.create_node('bench_trigger', namespace=namespace)
-        self.node.create_service(Trigger, f'{namespace}/trigger', self._on_trigger,
-                                 qos_profile=SERVICE_QOS)
+class Run:
+    """One benchmark run: the columns, their rows, what went wrong."""
+
+    def __init__(self, args):
+        self.args = args
+        self.rows: Dict[str, Dict[str, dict]] = {'virtual': {}, 'udp_multicast': {}}
+        self.problems: List[str] = []
+
+    def _collect(self, client: Child, column: str, on_request=None) -> None:
+        """Take the client's rows (and serve its requests) until it is done."""
+        while True:
+            message = client.next(COLUMN_TIMEOUT)
+            if 'row' in message:
+                self.rows[column][message['row']] = message['data']
+            elif 'request' in message and on_request is not None:
+                client.tell(on_request(message['request']))
+            elif message.get('done'):
+                return
+
+    def _quick(self) -> List[str]:
+        return ['--quick'] if self.args.quick else []
+
+    def column(self, name: str, measure) -> None:
+        """Measure one column; retry once if it failed before measuring anything."""
+        for attempt in (1, 2):
+            try:
+                measure()
+                return
+            except ChildFailed as error:
+                logs = '\n'.join(child.output() for child in Child.running)
+                Child.stop_all()
+                measured = bool(self.rows[name])
+                problem = f'{name}: {error}'
+                progress(f'{problem}\n{logs}')
+                if measured or attempt == 2:
+                    self.problems.append(problem + ('' if measured else
+                                                    ' (retried once; nothing measured)'))
+                    return
+                progress(f'{name}: retrying once (the package may have been rebuilding)')
+            finally:
+                Child.stop_all()
+
+    def virtual(self) -> None:
+        """Measure the virtual column: one process."""
+        progress('column virtual: everything in one process')
+        client = Child('virtual', python('bench_client.py', 'virtual', *self._quick()))
+        self._collect(client, 'virtual')
+        client.stop()
+
+    def udp(self) -> None:
+        """Measure the udp_multicast column: devices, Trigger, cbcan_node, client."""
+        group = f'239.{random.randint(1, 254)}.{random.randint(0, 255)}.{random.randint(1, 254)}'
+        options = {'port': random.randint(20000, 40000)}
+        bus = ['--channel', group, '--bus-options', json.dumps(options)]
+        namespace = f'/bench_{uuid.uuid4().hex[:8]}'
+        progress(f'column udp_multicast: group {group} port {options["port"]}; '
+                 'devices, Trigger, cbcan_node and client are separate processes')
+        devices = Child('devices', python('bench_devices.py', 'devices', '--durand',
+                                          str(BLOCK_DEVICE), *bus))
+        devices.expect('ready', START_TIMEOUT)
+        trigger = Child('trigger', python('bench_trigger.py', namespace))
+        trigger.expect('ready', START_TIMEOUT)
+        node_executable = shutil.which('cbcan_node')
+        if node_executable is None:
+            raise ChildFailed('cbcan_node is not on PATH (run through make bench)')
+        node = Child('cbcan_node', [
+            node_executable, '--ros-args', '-r', f'__ns:={namespace}',
+            '-p', 'can.interface:=udp_multicast', '-p', f'can.channel:={group}',
+            '-p', 'sdo.block_transfer:=true'],
+            env={**os.environ, 'CAN_CONFIG': json.dumps(options)})
+        client = Child('client', python('bench_client.py', 'udp_multicast', '--namespace',
+                                         namespace, *bus, *self._quick()))
+        helpers: Dict[str, Child] = {'devices': devices}
+        port = options['port']
+
+        def drops() -> dict:
+            device = helpers.get('devices') or helpers.get('load-device')
+            return {'system': udp_receive_drops(), 'node': proc_udp_drops(node.pid, port),
+                    'device': proc_udp_drops(device.pid, port) if device else None,
+                    'client': proc_udp_drops(client.pid, port)}
+
+        def on_request(request: dict) -> dict:
+            if request['op'] == 'start_load':
+                helpers.pop('devices').stop()
+                for mode in ('load-device', 'heartbeats'):
+                    helpers[mode] = Child(mode, python('bench_devices.py', mode, *bus))
+                    helpers[mode].expect('ready', START_TIMEOUT)
+                return {'ok': True}
+            if request['op'] == 'load':
+                helpers['load-device'].tell(request)
+                helpers['load-device'].expect('ok', START_TIMEOUT)
+                helpers['heartbeats'].tell(request)
+                return helpers['heartbeats'].expect('ok', START_TIMEOUT)
+            if request['op'] == 'cpu':
+                return self._cpu_window(request['seconds'], node, helpers, client, bus, drops)
+            if request['op'] == 'udp_drops':
+                return drops()
+            return {'error': f'unknown request {request}'}
+
+        self._collect(client, 'udp_multicast', on_request)
+        client.stop()
+        for helper in helpers.values():
+            helper.stop()
 
     @staticmethod
-    def _on_trigger(_request, response):
-        response.success = True
-        return response
+    def _cpu_window(seconds: float, node: Child, helpers: Dict[str, Child], client: Child,
+                    bus: List[str], drops) -> dict:
+        """Measure CPU shares (of one core) over ``seconds``, the node's RSS, dropped frames.
 
+        Then a second, shorter window with a bare python-can receiver on the bus: what
+        receiving the frames alone costs (apart, so it does not compete with the node).
+        """
+        heartbeats = helpers['heartbeats']
 
-def spin_in_thread(node) -> tuple:
-    """Spin ``node`` in its own SingleThreadedExecutor on a thread of its own."""
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    return executor, thread
+        def window(pids: Dict[str, int], length: float) -> dict:
+            heartbeats.tell({'op': 'stats'})
+            before_stats = heartbeats.expect('ok', START_TIMEOUT)
+            dropped = drops()
+            before = {name: proc_cpu_seconds(pid) for name, pid in pids.items()}
+            started = time.monotonic()
+            time.sleep(length)
+            after = {name: proc_cpu_seconds(pid) for name, pid in pids.items()}
+            elapsed = time.monotonic() - started
+            dropped_after = drops()
+            heartbeats.tell({'op': 'stats'})
+            after_stats = heartbeats.expect('ok', START_TIMEOUT)
+            result = {f'cpu_{name}': (after[name] - before[name]) / elapsed * 100
+                      if after[name] is not None and before[name] is not None else None
+                      for name in pids}
+            result.update({f'drops_{name}': dropped_after[name] - dropped[name]
+                           if dropped_after[name] is not None and dropped[name] is not None
+                           else None for name in dropped})
+            sent = after_stats['sent'] - before_stats['sent']
+            result['frames_per_s'] = sent / (after_stats['time'] - before_stats['time'])
+            result['late_cycles'] = after_stats['late_cycles'] - before_stats['late_cycles']
+            result['window_s'] = elapsed
+            return result
 
-
-def measure_in_process(gateway, channel: str, count: int, burst: int, rounds: int) -> dict:
-    """Measure raw canopen uploads and core reads, alternating, on the gateway's bus."""
-    network = canopen.Network()
-    network.connect(interface='virtual', channel=channel)
-    remote = canopen.RemoteNode(5, canopen.ObjectDictionary())
-    network.add_node(remote)
-    failures = []
-    try:
-        def raw():
-            if remote.sdo.upload(0x1000, 0) != DEVICE_TYPE:
-                failures.append('raw upload returned other bytes')
-
-        def core(node_id: int = 5):
-            result = gateway.sdo_read(node_id, 0x1000, 0).result()
-            if not result.success or result.data != DEVICE_TYPE:
-                failures.append(result.message or result.data.hex())
-
-        for _ in range(WARMUP):
-            raw()
-            core()
-        raw_times, core_times = [], []
-        for _ in range(count):
-            start = time.perf_counter()
-            raw()
-            middle = time.perf_counter()
-            core()
-            end = time.perf_counter()
-            raw_times.append(middle - start)
-            core_times.append(end - middle)
-
-        total_calls, total_time = 0, 0.0
-        for _ in range(rounds):
-            start = time.perf_counter()
-            futures = [gateway.sdo_read(DEVICES[i % len(DEVICES)], 0x1000, 0)
-                       for i in range(burst)]
-            results = [future.result(timeout=30.0) for future in futures]
-            total_time += time.perf_counter() - start
-            total_calls += burst
-            failures.extend(r.message for r in results if not r.success)
-    finally:
-        network.disconnect()
-    return {'raw': summary(raw_times), 'core': summary(core_times),
-            'core_throughput': total_calls / total_time, 'failures': failures[:5],
-            'failure_count': len(failures)}
-
-
-def run_server(args) -> int:
-    """Host the gateway and the Trigger node, measure raw and core, start the client."""
-    os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(101, 200)))
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    started = time.monotonic()
-    namespace = f'/bench_{uuid.uuid4().hex[:8]}'
-    channel = f'bench-{uuid.uuid4().hex[:8]}'
-    rclpy.init()
-    gateway_node = CbcanNode(namespace=namespace, parameter_overrides=[
-        Parameter('can.interface', value='virtual'),
-        Parameter('can.channel', value=channel),
-        Parameter('simulation.devices', value=list(DEVICES))])
-    trigger = TriggerNode(namespace)
-    spinners = [spin_in_thread(gateway_node), spin_in_thread(trigger.node)]
-    try:
-        progress('measuring raw canopen and the core in process')
-        local = measure_in_process(gateway_node.gateway, channel, args.count, args.burst,
-                                   args.rounds)
-        progress('starting the client process')
-        client = subprocess.run(
-            [sys.executable, os.path.abspath(__file__), '--client-of', namespace,
-             '--count', str(args.count), '--burst', str(args.burst),
-             '--rounds', str(args.rounds)],
-            stdout=subprocess.PIPE, text=True, timeout=120)
-        if client.returncode != 0:
-            print(f'bench: the client process failed (status {client.returncode})',
-                  file=sys.stderr)
-            return 1
-        remote = json.loads(client.stdout.strip().splitlines()[-1])
-    finally:
-        for executor, thread in spinners:
-            executor.shutdown(timeout_sec=2.0)
-            thread.join(timeout=5.0)
-        trigger.node.destroy_node()
-        gateway_node.destroy_node()
-        rclpy.try_shutdown()
-    report(args, local, remote, time.monotonic() - started)
-    return 0
-
-
-def report(args, local: dict, remote: dict, elapsed: float) -> None:
-    """Print the table and the ratios."""
-    raw, core = local['raw'], local['core']
-    trigger, service = remote['trigger'], remote['service']
-    print()
-    print(f'SDO read of 0x1000 (4 bytes, expedited), {args.count} calls per row after '
-          f'{WARMUP} warm-up calls; python-can virtual bus, simulated devices {DEVICES}')
-    print('trigger and service: server process = CbcanNode and a bare Trigger node, each in '
-          'its own')
-    print('  SingleThreadedExecutor thread; client = a separate process, '
-          'SingleThreadedExecutor,')
-    print('  call_async + spin_once until done, SERVICE_QOS, trigger and service calls '
-          'alternating.')
-    print()
-    print(f'{"row":<44} {"p50 ms":>8} {"p90 ms":>8}')
-    for name, row in (('(a) raw    canopen RemoteNode.sdo.upload', raw),
-                      ('    core   Gateway.sdo_read().result()', core),
-                      ('(b) trigger rclpy std_srvs/Trigger round trip', trigger),
-                      ('(c) service sdo_read through the gateway', service)):
-        print(f'{name:<44} {row["p50"]:>8.3f} {row["p90"]:>8.3f}')
-    print()
-    print(f'(d) throughput, bursts of {args.burst} concurrent calls over nodes '
-          f'{", ".join(map(str, DEVICES))}, {args.rounds} bursts:')
-    print(f'    service sdo_read      {remote["service_throughput"]:>8.0f} calls/s')
-    print(f'    trigger (no SDO)      {remote["trigger_throughput"]:>8.0f} calls/s')
-    print(f'    core Gateway.sdo_read {local["core_throughput"]:>8.0f} calls/s')
-    print()
-    print('ratios of p50:')
-    print(f'    service/trigger = {service["p50"] / trigger["p50"]:.2f}   '
-          f'service/raw = {service["p50"] / raw["p50"]:.2f}   '
-          f'core/raw = {core["p50"] / raw["p50"]:.2f}')
-    print(f'    service - trigger = {service["p50"] - trigger["p50"]:.3f} ms   '
-          f'(gateway cost above a bare rclpy call; core - raw = '
-          f'{core["p50"] - raw["p50"]:.3f} ms)')
-    failures = local['failure_count'] + remote['failure_count']
-    if failures:
-        print(f'\n{failures} reads failed or returned other bytes, e.g. '
-              f'{(local["failures"] + remote["failures"])[:3]}')
-    print(f'\ntotal {elapsed:.1f} s')
+        measured = window({'node': node.pid, 'device': helpers['load-device'].pid,
+                           'heartbeats': heartbeats.pid, 'client': client.pid}, seconds)
+        measured['rss_mb'] = proc_rss_mb(node.pid)
+        reader = Child('reader', python('bench_devices.py', 'reader', *bus))
+        try:
+            reader.expect('ready', START_TIMEOUT)
+            bare = window({'reader': reader.pid}, min(seconds, 3.0))
+        finally:
+            reader.stop()
+        measured['cpu_reader'] = bare['cpu_reader']
+        measured['reader_frames_per_s'] = bare['frames_per_s']
+        return measured
 
 
 def main(argv=None) -> int:
-    """Run the benchmark (or, with --client-of, its client process)."""
+    """Run both columns, then print and write the report."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n', 1)[0])
-    parser.add_argument('--count', type=int, default=1000,
-                        help='calls per latency row (default %(default)s)')
-    parser.add_argument('--burst', type=int, default=150,
-                        help=f'concurrent calls per throughput burst, at most {MAX_BURST} '
-                             f'(default %(default)s)')
-    parser.add_argument('--rounds', type=int, default=5,
-                        help='throughput bursts per row (default %(default)s)')
-    parser.add_argument('--client-of', metavar='NAMESPACE', help=argparse.SUPPRESS)
+    parser.add_argument('--quick', action='store_true',
+                        help='fewer calls and rounds (about a third of the time)')
+    parser.add_argument('--only', choices=('virtual', 'udp_multicast'),
+                        help='measure one column only')
+    parser.add_argument('--output', default=os.path.join(HERE, 'results'),
+                        help='folder of latest.md and latest.png (default %(default)s)')
     args = parser.parse_args(argv)
-    if args.count < 1 or not 1 <= args.burst <= MAX_BURST or args.rounds < 1:
-        parser.error(f'--count and --rounds must be at least 1, --burst 1..{MAX_BURST}')
-    if args.client_of:
-        run_client(args.client_of, args.count, args.burst, args.rounds)
-        return 0
-    return run_server(args)
+
+    def on_term(signum, _frame):
+        raise KeyboardInterrupt(f'signal {signum}')
+    signal.signal(signal.SIGTERM, on_term)
+    # Ctrl-C stops the run even when started where SIGINT was ignored (a background job).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    os.environ['ROS_DOMAIN_ID'] = os.environ.get('BENCH_ROS_DOMAIN_ID',
+                                                 str(random.randint(101, 200)))
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    machine = machine_info()
+    started = time.monotonic()
+    run = Run(args)
+    interrupted = False
+    try:
+        if args.only in (None, 'virtual'):
+            run.column('virtual', run.virtual)
+        if args.only in (None, 'udp_multicast'):
+            run.column('udp_multicast', run.udp)
+    except KeyboardInterrupt:
+        interrupted = True
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the cleanup below takes seconds
+        progress('interrupted: stopping every child process')
+    finally:
+        Child.stop_all()
+    machine['load_after'] = ' '.join(f'{v:.2f}' for v in os.getloadavg())
+    machine['duration_s'] = time.monotonic() - started
+    machine['quick'] = args.quick
+    if interrupted:
+        run.problems.append('interrupted (Ctrl-C): the rows after that point are missing')
+    write_report(run.rows, run.problems, machine, args.output)
+    return 0
 
 
 if __name__ == '__main__':
