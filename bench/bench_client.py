@@ -53,7 +53,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from std_srvs.srv import Trigger
 
-node_module, srv, msg = import_retrying('cbcan_ros.node', 'cbcan_ros.srv', 'cbcan_ros.msg')
+node_module, srv, msg = import_retrying('cbcan_ros.ros.node', 'cbcan_ros.srv', 'cbcan_ros.msg')
 SERVICE_QOS = node_module.SERVICE_QOS
 NODE_STATES_QOS = node_module.NODE_STATES_QOS
 

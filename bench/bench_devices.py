@@ -1,7 +1,7 @@
 """The simulated devices of the benchmark, in-process or as a process of their own.
 
 :class:`DeviceHost` puts python-canopen ``LocalNode`` devices built from
-``config/simulated_device.eds`` (as ``cbcan_ros.simulation.SimulatedDevice`` does) on ONE
+``config/simulated_device.eds`` (as ``SimulatedDevice`` of ``cbcan_ros.simulation`` does) on ONE
 canopen Network, so the device side opens one bus socket, and adds a ``DurandDevice`` (the
 independent device stack, which does block transfer). On ``udp_multicast`` every socket of
 the machine receives every frame: ten devices with a socket each would multiply the cost of
@@ -85,7 +85,7 @@ class DeviceHost:
         if STATE_DEVICE in self.nodes:
             self.nodes[STATE_DEVICE].sdo[0x1017].raw = STATE_DEVICE_HEARTBEAT_MS
         if self.durand_id is not None:
-            durand_device, = import_retrying('cbcan_ros.durand_device')
+            durand_device, = import_retrying('cbcan_ros.simulation.durand_device')
             options = {k: v for k, v in self._bus.items() if k not in ('interface', 'channel')}
             self.durand = durand_device.DurandDevice(
                 self.durand_id, self._bus['interface'], self._bus['channel'], options)

@@ -20,7 +20,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
 from cbcan_ros.msg import NodeStates  # noqa: E402
-from cbcan_ros.node import CbcanNode, NODE_STATES_QOS, SERVICE_QOS  # noqa: E402
+from cbcan_ros.ros.node import CbcanNode, NODE_STATES_QOS, SERVICE_QOS  # noqa: E402
 from cbcan_ros.srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite  # noqa: E402
 
 SERVICE_TYPES = {

@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from cbcan_ros.simulation import SimulatedDevice
+from cbcan_ros.simulation.canopen_device import SimulatedDevice
 
 from conftest import new_channel, wait_for_future, wait_until
 import faulty_bus
@@ -20,6 +20,7 @@ from faulty_bus import FaultController
 
 EDS = str(pathlib.Path(__file__).resolve().parent.parent / 'config' / 'simulated_device.eds')
 DEVICE_TYPE = struct.pack('<I', 0x00020192)
+BUS_LOGGER = 'cbcan_ros.core.bus'
 RECOVERY = 10.0  # backoff doubles up to 5 s; generous for a loaded CI machine
 PROMPT = 1.0     # "at once", with room for a loaded CI machine
 
@@ -66,11 +67,11 @@ def wait_for_recovery(gateway):
 
 
 def down_logs(caplog):
-    return [r for r in caplog.records if r.name == 'cbcan_ros.bus' and 'is down' in r.message]
+    return [r for r in caplog.records if r.name == BUS_LOGGER and 'is down' in r.message]
 
 
 def test_receive_error_is_reported_once_and_the_bus_comes_back(start_faulty, caplog):
-    caplog.set_level(logging.INFO, logger='cbcan_ros.bus')
+    caplog.set_level(logging.INFO, logger=BUS_LOGGER)
     gateway, faults = start_faulty()
     gateway.wait_for_states({2: 'PRE_OPERATIONAL', 3: 'PRE_OPERATIONAL'})
     assert bytes(read_device_type(gateway).data) == DEVICE_TYPE
@@ -94,7 +95,7 @@ def test_receive_error_is_reported_once_and_the_bus_comes_back(start_faulty, cap
     wait_for_recovery(gateway)
     assert bytes(read_device_type(gateway).data) == DEVICE_TYPE
     assert gateway.node.gateway.bus_status.reopen_count == 1
-    assert any('up again' in r.message for r in caplog.records if r.name == 'cbcan_ros.bus')
+    assert any('up again' in r.message for r in caplog.records if r.name == BUS_LOGGER)
 
 
 def test_pending_and_queued_calls_are_answered_at_once_when_the_bus_goes_down(start_faulty):

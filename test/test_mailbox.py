@@ -11,8 +11,8 @@ import time
 import can
 import pytest
 
-from cbcan_ros.mailbox import Mailbox
-from cbcan_ros.sdo import resolved, SdoResult
+from cbcan_ros.core.sdo import resolved, SdoResult
+from cbcan_ros.plc.mailbox import Mailbox
 
 from conftest import wait_until
 

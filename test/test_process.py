@@ -10,8 +10,8 @@ import uuid
 import pytest
 
 from cbcan_ros.msg import NodeStates
-from cbcan_ros.node import NODE_STATES_QOS
-from cbcan_ros.simulation import SimulatedDevice
+from cbcan_ros.ros.node import NODE_STATES_QOS
+from cbcan_ros.simulation.canopen_device import SimulatedDevice
 from cbcan_ros.srv import NmtCommand, NmtState, SdoRead, SdoWrite
 
 from conftest import wait_until

@@ -14,8 +14,8 @@ import can
 import pytest
 
 from cbcan_ros.msg import NodeStates
-from cbcan_ros.node import NODE_STATES_QOS
-from cbcan_ros.simulation import SimulatedDevice
+from cbcan_ros.ros.node import NODE_STATES_QOS
+from cbcan_ros.simulation.canopen_device import SimulatedDevice
 from cbcan_ros.srv import SdoRead, SdoWrite
 
 from conftest import new_channel, wait_for_future, wait_until

@@ -11,8 +11,8 @@ import time
 import pytest
 from test_process_faults import BusRecorder, namespace
 
-from cbcan_ros.durand_device import DurandDevice
 from cbcan_ros.msg import SdoAccess
+from cbcan_ros.simulation.durand_device import DurandDevice
 from cbcan_ros.srv import SdoBatch, SdoRead, SdoWrite
 
 from conftest import new_channel, wait_for_future, wait_until

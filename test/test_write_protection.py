@@ -5,7 +5,7 @@ import struct
 import pytest
 from rclpy.parameter import Parameter
 
-from cbcan_ros.node import CbcanNode
+from cbcan_ros.ros.node import CbcanNode
 
 from conftest import frames_before_marker
 

@@ -27,11 +27,11 @@ from typing import List, Optional, Sequence
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
-from .mailbox import Cbcan, Me3can
-from .msg import NodeStates, SdoAccess
+from ..core.sdo import MAX_NODE_ID, MAX_TIMEOUT
+from ..msg import NodeStates, SdoAccess
+from ..plc.mailbox import Cbcan, Me3can
+from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 from .node import NODE_STATES_QOS, SERVICE_QOS
-from .sdo import MAX_NODE_ID, MAX_TIMEOUT
-from .srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 
 DEFAULT_GATEWAY = '/can0/cbcan'
 DEFAULT_WAIT = 5.0

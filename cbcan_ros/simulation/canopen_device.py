@@ -13,8 +13,8 @@ from typing import Dict, Optional
 import can
 import canopen
 
-from . import nmt
-from .gateway import NOTIFIER_CYCLE
+from ..core import nmt
+from ..core.gateway import NOTIFIER_CYCLE
 
 SLOW_INDEX = 0x2200
 DOMAIN_INDEX = 0x2020

@@ -25,16 +25,15 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 import rclpy.task
 
+from ..core.gateway import Gateway
+from ..core.nmt import state_name
+from ..core.sdo import Access, check_node_id
+from ..msg import NodeState, NodeStates
+from ..msg import SdoResult as SdoResultMessage
+from ..plc.mailbox import Mailbox
+from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 from .config import NodeParameters
 from .deferred import CallsInProgress, DeferredService
-from .gateway import Gateway
-from .mailbox import Mailbox
-from .msg import NodeState, NodeStates
-from .msg import SdoResult as SdoResultMessage
-from .nmt import state_name
-from .sdo import Access, check_node_id
-from .simulation import SimulatedDevice
-from .srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 
 NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -46,6 +45,9 @@ NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
+
+# The logger every module of the package logs under, shown through the node's ROS logger.
+PACKAGE = __package__.partition('.')[0]
 
 # How long shutdown waits for answers already decided to leave the node.
 ANSWER_GRACE = 1.0
@@ -95,15 +97,12 @@ class CbcanNode(Node):
         self._calls = CallsInProgress()
         self._destroyed = False
         self._log_handler = _RosLogHandler(self.get_logger())
-        core_logger = logging.getLogger(__package__)
+        core_logger = logging.getLogger(PACKAGE)
         core_logger.setLevel(logging.INFO)
         core_logger.addHandler(self._log_handler)
         parameters = NodeParameters(self)
         self.gateway = Gateway(parameters.gateway_config())
-        self._simulated = [
-            SimulatedDevice(node_id, parameters.simulation_eds(), self.gateway.config.interface,
-                            self.gateway.config.channel)
-            for node_id in parameters.node_ids('simulation.devices')]
+        self._simulated = self._simulated_devices(parameters)
         self.gateway.start()
         for device in self._simulated:
             device.start()
@@ -135,6 +134,16 @@ class CbcanNode(Node):
             f'CANopen gateway on {config.interface} channel {config.channel!r}; '
             f'simulated devices: {[d.node_id for d in self._simulated] or "none"}')
 
+    def _simulated_devices(self, parameters: NodeParameters) -> list:
+        node_ids = parameters.node_ids('simulation.devices')
+        if not node_ids:
+            return []
+        # Only for trying the gateway without hardware: a real bus never loads the simulator.
+        from ..simulation.canopen_device import SimulatedDevice
+        return [SimulatedDevice(node_id, parameters.simulation_eds(),
+                                self.gateway.config.interface, self.gateway.config.channel)
+                for node_id in node_ids]
+
     def shut_down_gateway(self) -> None:
         """Answer every waiting call ("shutting down"), abort running transfers, close the bus.
 
@@ -152,7 +161,7 @@ class CbcanNode(Node):
         self.shut_down_gateway()
         for device in self._simulated:
             device.stop()
-        logging.getLogger(__package__).removeHandler(self._log_handler)
+        logging.getLogger(PACKAGE).removeHandler(self._log_handler)
         super().destroy_node()
 
     async def _completion(self, future: ConcurrentFuture):

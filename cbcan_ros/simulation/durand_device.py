@@ -36,7 +36,7 @@ from durand.node import NodeCapabilities
 from durand.object_dictionary import Record, Variable
 from durand.services.sdo.server import SDODomainAbort, TransferState
 
-from . import nmt
+from ..core import nmt
 
 LOGGER = logging.getLogger(__name__)
 

@@ -13,8 +13,8 @@ Data bytes are packed into registers little-endian: byte 2k is the low byte of w
 
 import logging
 
-from . import abort_codes, nmt
-from .sdo import MAX_NODE_ID
+from ..core import abort_codes, nmt
+from ..core.sdo import MAX_NODE_ID
 
 LOGGER = logging.getLogger(__name__)
 

@@ -14,8 +14,8 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from .gateway import GatewayConfig
-from .write_protection import RULE_FORMAT, WriteProtection
+from ..core.gateway import GatewayConfig
+from ..core.write_protection import RULE_FORMAT, WriteProtection
 
 
 class NodeParameters:

@@ -1,0 +1,1 @@
+"""The PLC register mailboxes, translated onto the core."""

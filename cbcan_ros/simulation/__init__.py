@@ -1,0 +1,1 @@
+"""Simulated CANopen devices: on python-canopen (``canopen_device``) and on durand."""
