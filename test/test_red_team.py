@@ -1,4 +1,4 @@
-"""Red-team regressions: promises the installed ``cbcan_node`` breaks, seen from outside.
+"""Red-team regressions: promises the installed ``cbcan_node`` once broke, seen from outside.
 
 Each test starts the node as a separate process (test/node_process.py) and meets it as a robot
 and its integrators would: rclpy clients, a raw udp_multicast recorder, a fake slcan adapter.
@@ -57,7 +57,8 @@ def durand_device():
 @pytest.mark.parametrize('bad', [['-p', "nodes:=[1, 'a']"],
                                  ['--params-file', '/nonexistent/cbcan.yaml']])
 def test_malformed_parameter_override_stops_the_node_without_a_traceback(start_node, bad):
-    # rclpy.init parses --ros-args outside main()'s guard: RCLError escapes as a traceback.
+    # Once a defect: rclpy.init parsed --ros-args outside main()'s guard, and its RCLError
+    # escaped as a traceback.
     gateway = start_node(['-p', f'can.channel:={new_channel()}', *bad])
     status = gateway.wait(START_TIMEOUT)
     output = gateway.output()
@@ -66,8 +67,8 @@ def test_malformed_parameter_override_stops_the_node_without_a_traceback(start_n
 
 
 def test_unknown_can_interface_stops_the_node_at_start(start_node):
-    # python-can says at once that the interface does not exist; the node keeps "reopening
-    # until it works" for ever instead of stopping with a message naming can.interface.
+    # Once a defect: python-can said at once that the interface does not exist, and the node
+    # kept "reopening until it works" for ever instead of naming can.interface.
     gateway = start_node(['-p', 'can.interface:=no_such_interface',
                           '-p', f'can.channel:={new_channel()}'])
     status = gateway.wait(8.0)
@@ -81,9 +82,8 @@ def test_unknown_can_interface_stops_the_node_at_start(start_node):
 
 def test_signal_during_block_download_aborts_it_on_the_bus(
         start_node, client_node, durand_device):
-    # A segmented download interrupted by SIGINT is aborted on the bus; a block download is
-    # not: the cancel lands while canopen sends sub-block segments, send_request raises
-    # without sending the abort, and the device is left inside the block transfer.
+    # Once a defect: the cancel landed while canopen sent sub-block segments, send_request
+    # raised without sending the abort, and the device was left inside the block transfer.
     group, port = random_bus()
     durand_device('udp_multicast', group, port=port)
     recorder = BusRecorder(group, port)
@@ -113,8 +113,8 @@ def test_signal_during_block_download_aborts_it_on_the_bus(
 
 def test_signal_during_a_batch_sends_nothing_for_accesses_that_never_started(
         start_node, client_node, durand_device):
-    # The batch's next access, an expedited write, is refused by the shutdown send gate;
-    # download()'s failure path then aborts that never-started transfer on the bus.
+    # Once a defect: the batch's next access, refused by the shutdown send gate, was then
+    # aborted on the bus although the device never heard of it.
     group, port = random_bus()
     durand_device('udp_multicast', group, port=port)
     recorder = BusRecorder(group, port)
@@ -147,8 +147,8 @@ def test_signal_during_a_batch_sends_nothing_for_accesses_that_never_started(
 
 def test_unplug_during_block_download_logs_the_fault_only_once(
         start_node, client_node, durand_device, tmp_path):
-    # canopen's BlockDownloadStream.close() logs "Block transfer was not finished" through
-    # Python's last-resort handler: a second, unformatted line on the node's stderr.
+    # Once a defect: canopen's BlockDownloadStream.close() logged "Block transfer was not
+    # finished" through Python's last-resort handler, a second line for the one fault.
     channel = new_channel()
     durand_device('virtual', channel)
     link = tmp_path / 'usb-can'
@@ -179,9 +179,9 @@ def test_unplug_during_block_download_logs_the_fault_only_once(
 # "Every request gets exactly one answer, within its timeout (+0.2 s)".
 
 def test_burst_of_waiting_calls_is_answered_within_its_timeout(start_node, client_node):
-    # 1,000 reads of 16 silent nodes (62 each, under sdo.queue_limit 64), timeout 2 s. The
-    # same burst to a live device is all answered in about 1.7 s; here answers arrive up to
-    # 8 s after the call: the executor slows down with every call that awaits its answer.
+    # 1,000 reads of 16 silent nodes (62 each, under sdo.queue_limit 64), timeout 2 s. Once
+    # a defect: answers came up to 8 s after the call, because rclpy's executor resumed
+    # every waiting coroutine on each wake; answers now leave from the gateway's threads.
     calls, timeout, silent = 1000, 2.0, range(10, 26)
     name = f'{namespace()}/cbcan'
     gateway = start_node(arguments(name, '-p', f'can.channel:={new_channel()}'))
