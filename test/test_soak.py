@@ -25,7 +25,8 @@ def rss_kb(pid: int) -> int:
     return int(line.split()[1])
 
 
-def test_twenty_thousand_mixed_requests_keep_the_node_s_memory_flat(start_node, client_node):
+def test_twenty_thousand_mixed_requests_keep_the_node_s_memory_flat(start_node, client_node,
+                                                                   capsys):
     name = f'/soak{uuid.uuid4().hex[:8]}/cbcan'
     gateway = start_node(['-r', f'__ns:={name.rsplit("/", 1)[0]}',
                           '-p', f'can.channel:=soak{uuid.uuid4().hex[:8]}',
@@ -65,6 +66,7 @@ def test_twenty_thousand_mixed_requests_keep_the_node_s_memory_flat(start_node, 
     before = rss_kb(gateway.process.pid)
     run(WARM_UP, TOTAL - WARM_UP)
     after = rss_kb(gateway.process.pid)
-    print(f'\ncbcan_node RSS before {before} kB, after {after} kB, growth {after - before} kB '
-          f'over {TOTAL - WARM_UP} requests')
+    with capsys.disabled():  # the numbers belong in every run's output, not only on failure
+        print(f'\ncbcan_node RSS before {before} kB, after {after} kB, growth '
+              f'{after - before} kB over {TOTAL - WARM_UP} requests')
     assert after - before < ALLOWED_GROWTH_KB
