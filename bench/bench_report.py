@@ -293,7 +293,8 @@ def markdown(rows: Dict[str, Dict[str, dict]], problems: List[str], machine: Dic
               'block transfer once during warm-up and get segmented/expedited transfers from '
               'then on. 64 KiB calls and batches carry a 30 s timeout.',
               '- Clients: one node, SingleThreadedExecutor, `call_async` + `spin_once` until '
-              '`future.done()`, SERVICE_QOS (keep-all) for both Trigger and the gateway. '
+              '`future.done()`, SERVICE_QOS (reliable, depth 4096) for both Trigger and the '
+              'gateway. '
               'Latency rows alternate call by call (the order rotates); bursts, batches and '
               '64 KiB reads alternate round by round. Bursts: all calls sent at once, calls/s '
               '= calls / time until the last answer. "p99 / worst" is the p99 for latencies '

@@ -72,6 +72,7 @@ class DeferredService:
         self._pending: Dict[int, Tuple[Future, object]] = {}
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
+        self._send_failures = set()
         self._service = node.create_service(srv_type, name, self._take, **options)
         self._send = self._service.send_response
         self._service.send_response = self._send_when_ready
@@ -103,7 +104,11 @@ class DeferredService:
         try:
             with self._send_lock:
                 self._send(response, header)
-        except Exception as error:  # noqa: BLE001 - the node is gone: nobody to answer
-            LOGGER.debug('answer to %s not sent: %r', self._service.srv_name, error)
+        except Exception as error:  # noqa: BLE001 - a lost answer must be seen, once
+            kind = type(error).__name__
+            if kind not in self._send_failures:
+                self._send_failures.add(kind)
+                LOGGER.error('an answer of %s could not be sent (%s: %s); later failures of '
+                             'this kind are not logged', self._service.srv_name, kind, error)
         finally:
             self._calls.end()

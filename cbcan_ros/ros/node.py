@@ -39,15 +39,22 @@ NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 # The default service QoS keeps 10 requests: a burst of calls (one per device, say) loses
-# the oldest before the executor takes them. KEEP_ALL loses none: every request that
-# reaches the node is answered (a full device queue is answered "busy"). Clients sending
-# bursts need a history deep enough for their answers too.
-SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL,
+# the oldest before the executor takes them. A deep history keeps every request of a burst
+# (a full device queue is answered "busy"). Not keep-all: the answers share one history, and
+# a client killed mid-call stays matched until its DDS lease ends (about 20 s) without ever
+# acknowledging, so under keep-all its unacknowledged answers filled the history and every
+# later answer to everyone failed. Clients sending bursts need a history this deep too.
+SERVICE_DEPTH = 4096
+SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SERVICE_DEPTH,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
 
 # The logger every module of the package logs under, shown through the node's ROS logger.
 PACKAGE = __package__.partition('.')[0]
+
+# The longest an idle executor sleeps before it looks whether shutdown began (it is woken
+# at once anyway; this only bounds a missed wake-up).
+SPIN_CHECK = 1.0
 
 # How long shutdown waits for answers already decided to leave the node.
 ANSWER_GRACE = 1.0
@@ -255,9 +262,13 @@ def main(args=None) -> int:
     executor = SingleThreadedExecutor()
     executor.add_node(node)
 
+    spinning = threading.Event()
+    spinning.set()
+
     def spin() -> None:
         try:
-            executor.spin()
+            while spinning.is_set():
+                executor.spin_once(timeout_sec=SPIN_CHECK)
         finally:
             stop.set()
 
@@ -266,8 +277,12 @@ def main(args=None) -> int:
     stop.wait()  # the main thread only waits: signal handlers run here at once
     node.get_logger().info('shutting down: answering waiting calls')
     node.shut_down_gateway()
-    executor.shutdown(timeout_sec=ANSWER_GRACE)
+    # rclpy 7.1.6's Executor.shutdown() does not wait for a spin in progress and destroys
+    # what that spin uses: end the spinning first, then shut the executor down.
+    spinning.clear()
+    executor.wake()
     spinner.join(ANSWER_GRACE)
+    executor.shutdown(timeout_sec=ANSWER_GRACE)
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
