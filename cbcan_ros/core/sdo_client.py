@@ -155,8 +155,10 @@ class StrictSdoClient(SdoClient):
 
     def on_response(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Queue a response frame with the time it arrived on the bus."""
-        now = time.monotonic()
+        # Wall clock first: if this thread is preempted between the two readings, the frame
+        # looks younger than it is, never older, so a real answer is never taken for stale.
         age = time.time() - timestamp
+        now = time.monotonic()
         if 0.0 < age < PLAUSIBLE_AGE:
             now -= age
         self.responses.put((now, bytes(data)))
