@@ -182,12 +182,13 @@ class BusSupervisor:
 
     def _receive(self, bus: can.BusABC) -> Optional[str]:
         """Feed frames to canopen until a fault (returned as its reason) or stop (None)."""
+        # The hot path: flags are read and this thread's own counters bumped without the
+        # lock (one writer; reading an attribute is atomic), so a frame costs no lock.
         while True:
-            with self._lock:
-                if self._stopping:
-                    return None
-                if self._fault is not None:
-                    return self._fault
+            if self._stopping:
+                return None
+            if self._fault is not None:
+                return self._fault
             try:
                 message = bus.recv(RECEIVE_POLL)
             except Exception as error:  # noqa: BLE001 - any driver failure is a bus fault
@@ -195,16 +196,14 @@ class BusSupervisor:
             if message is None:
                 continue
             if message.is_error_frame:
-                with self._lock:
-                    self._error_frames += 1
+                self._error_frames += 1
                 if message.arbitration_id & CAN_ERR_BUSOFF:
                     return 'the adapter reported bus-off'
                 continue
             # CANopen (CiA 301) uses 11-bit identifiers: extended frames are not for us.
             if message.is_remote_frame or message.is_extended_id:
                 continue
-            with self._lock:
-                self._received += 1
+            self._received += 1
             try:
                 self._network.notify(message.arbitration_id, message.data, message.timestamp)
             except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest

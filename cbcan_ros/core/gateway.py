@@ -24,6 +24,7 @@ from .sdo import (
     check_size,
     check_timeout,
     Deadlines,
+    one_each,
     resolved,
     run_guarded,
     SdoChannel,
@@ -197,7 +198,7 @@ class Gateway:
             problem = (f'the batch has {len(accesses)} accesses: at most {MAX_BATCH} are '
                        f'allowed; nothing was sent')
         if problem:
-            return resolved([SdoResult.failed(problem)] * len(accesses))
+            return resolved(one_each(SdoResult.failed(problem), len(accesses)))
         results: List[Optional[SdoResult]] = [None] * len(accesses)
         per_device: Dict[int, List[int]] = {}
         for position, access in enumerate(accesses):
@@ -298,8 +299,7 @@ class Gateway:
     def _channel_for(self, node_id: int, count: Optional[int], request) -> Future:
         """Hand a request to the device's channel; ``count`` accesses (None: one)."""
         def refused(message: str) -> Future:
-            result = SdoResult.failed(message)
-            return resolved(result if count is None else [result] * count)
+            return resolved(one_each(SdoResult.failed(message), count))
 
         status = self.bus.status
         with self._lock:

@@ -218,6 +218,14 @@ def run_guarded(transfer: Callable[[], Optional[bytes]]) -> SdoResult:
                                  f'{type(error).__name__}: {error}')
 
 
+def one_each(result: SdoResult, count: Optional[int]):
+    """Return ``result`` as the answer of a single request (``count`` None) or of a batch.
+
+    A batch refused or failed before it ran gets the same result for each of its accesses.
+    """
+    return result if count is None else [result] * count
+
+
 def answer(future: Future, result) -> None:
     """Resolve ``future`` with ``result`` unless it already has its one answer."""
     with contextlib.suppress(InvalidStateError):
@@ -241,7 +249,7 @@ class _Job:
 
     def failed(self, result: SdoResult) -> object:
         """Return the job's answer when it ends with ``result`` before it ran."""
-        return result if self.count is None else [result] * self.count
+        return one_each(result, self.count)
 
 
 class Deadlines:

@@ -45,7 +45,6 @@ _CCS_DOWNLOAD_SEGMENT = 0
 _CCS_DOWNLOAD = 1
 _CCS_UPLOAD = 2
 _CCS_UPLOAD_SEGMENT = 3
-_CCS_ABORT = 4
 _CCS_BLOCK_UPLOAD = 5
 _CCS_BLOCK_DOWNLOAD = 6
 
@@ -60,11 +59,10 @@ Verdict = Union[None, str, int]  # None: the answer; IGNORE: not ours; int: abor
 
 
 class TransferAborted(SdoAbortedError):
-    """The transfer ended with an abort code; ``by_device`` says who sent it."""
+    """The transfer ended with an abort code, the device's or the gateway's."""
 
-    def __init__(self, code: int, by_device: bool, detail: str = ''):
+    def __init__(self, code: int, detail: str = ''):
         super().__init__(code)
-        self.by_device = by_device
         self.detail = detail
 
 
@@ -134,7 +132,7 @@ class StrictSdoClient(SdoClient):
         """
         with self._lock:
             if self._aborted is None and self._cancelled is None:
-                self._aborted = TransferAborted(code, by_device=False, detail=detail)
+                self._aborted = TransferAborted(code, detail)
                 send = on_bus
             else:
                 send = False
@@ -191,12 +189,7 @@ class StrictSdoClient(SdoClient):
         A transfer of which nothing was sent is ended without a frame: the device never
         heard of it.
         """
-        with self._lock:
-            if self._aborted is not None or self._cancelled is not None:
-                return
-            self._aborted = TransferAborted(abort_code, by_device=False)
-        if self._sent_any:
-            self._send_abort(abort_code)
+        self.fail(abort_code, '', on_bus=self._sent_any)
 
     def _raise_if_ended(self) -> None:
         """Raise the end of the transfer, if it has ended; a cancellation aborts it once."""
@@ -261,7 +254,7 @@ class StrictSdoClient(SdoClient):
                     continue
                 with self._lock:
                     if self._aborted is None:
-                        self._aborted = TransferAborted(code, by_device=True)
+                        self._aborted = TransferAborted(code)
                     raise self._aborted
             verdict = expected(frame)
             if verdict is None:
