@@ -1,9 +1,10 @@
 """The measuring side of the benchmark: every row, from the caller's point of view.
 
 ``python bench_client.py virtual``: ONE process holds everything on a python-can ``virtual``
-bus: the simulated devices, the gateway (CbcanNode, spun by a SingleThreadedExecutor in a
-thread of its own, as ``cbcan_node`` does), the Trigger node (likewise), raw python-canopen,
-and this client (one node, one SingleThreadedExecutor on the main thread).
+bus: the simulated devices, the gateway (CbcanNode on the EventsExecutor of ``make_executor()``,
+in a thread of its own, as ``cbcan_node`` spins it), the Trigger node (rclpy's default executor
+in a thread of its own), raw python-canopen, and this client (one node, one
+SingleThreadedExecutor on the main thread).
 
 ``python bench_client.py udp_multicast``: this client only; the devices, the Trigger server and
 the installed ``cbcan_node`` are processes of their own, started by ``bench_sdo.py``, which
@@ -53,9 +54,10 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from std_srvs.srv import Trigger
 
-node_module, srv, msg = import_retrying('cbcan_ros.ros.node', 'cbcan_ros.srv', 'cbcan_ros.msg')
-SERVICE_QOS = node_module.SERVICE_QOS
-NODE_STATES_QOS = node_module.NODE_STATES_QOS
+gateway_node_module, interface_module, srv, msg = import_retrying(
+    'cbcan_ros.ros.node', 'cbcan_ros.ros.interface', 'cbcan_ros.srv', 'cbcan_ros.msg')
+SERVICE_QOS = interface_module.SERVICE_QOS
+NODE_STATES_QOS = interface_module.NODE_STATES_QOS
 
 # Counts per row: (default, --quick)
 COUNTS = {
@@ -500,13 +502,26 @@ class Suite:
                 nodes=nodes, period_ms=period, **cpu, **dropped))
 
 
-def spin_in_thread(node):
-    """Spin ``node`` in a SingleThreadedExecutor on a thread of its own."""
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    return executor, thread
+class Spinner:
+    """Spins one node on a thread of its own, ``spin_once`` at a time, until stopped."""
+
+    def __init__(self, node, executor):
+        self._executor = executor
+        self._executor.add_node(node)
+        self._spinning = True
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while self._spinning:
+            self._executor.spin_once(timeout_sec=0.5)
+
+    def stop(self) -> None:
+        """End the spinning, then shut the executor down (as cbcan_node does)."""
+        self._spinning = False
+        self._executor.wake()
+        self._thread.join(timeout=5.0)
+        self._executor.shutdown(timeout_sec=2.0)
 
 
 def run_virtual(args) -> None:
@@ -523,14 +538,16 @@ def run_virtual(args) -> None:
     rclpy.init()
     spinners, nodes = [], []
     try:
-        gateway = node_module.CbcanNode(namespace=namespace, parameter_overrides=[
+        gateway = gateway_node_module.CbcanNode(namespace=namespace, parameter_overrides=[
             Parameter('can.interface', value='virtual'),
             Parameter('can.channel', value=channel),
             Parameter('sdo.block_transfer', value=True)])
         nodes.append(gateway)
         trigger = TriggerNode(namespace, SERVICE_QOS)
         nodes.append(trigger.node)
-        spinners += [spin_in_thread(gateway), spin_in_thread(trigger.node)]
+        # The gateway on the executor cbcan_node uses, the Trigger on rclpy's default one.
+        spinners += [Spinner(gateway, gateway_node_module.make_executor()),
+                     Spinner(trigger.node, SingleThreadedExecutor())]
         client_node = rclpy.create_node(f'bench_client_{uuid.uuid4().hex[:8]}')
         nodes.append(client_node)
         executor = SingleThreadedExecutor()
@@ -540,9 +557,8 @@ def run_virtual(args) -> None:
         Suite('virtual', caller, namespace, raw, args.quick, hub=False).run()
         executor.shutdown(timeout_sec=1.0)
     finally:
-        for executor, thread in spinners:
-            executor.shutdown(timeout_sec=2.0)
-            thread.join(timeout=5.0)
+        for spinner in spinners:
+            spinner.stop()
         for node in reversed(nodes):
             node.destroy_node()
         rclpy.try_shutdown()

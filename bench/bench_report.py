@@ -273,8 +273,8 @@ def markdown(rows: Dict[str, Dict[str, dict]], problems: List[str], machine: Dic
             cells.append(text + _verdict(met))
         lines.append(f'| {name} | {target} | ' + ' | '.join(cells) + ' |')
     lines += ['', '**How it was measured**', '',
-              '- *virtual*: one process: the devices, the gateway (CbcanNode in a '
-              'SingleThreadedExecutor thread, as `cbcan_node` spins it), a bare Trigger node '
+              '- *virtual*: one process: the devices, the gateway (CbcanNode on an '
+              'EventsExecutor thread, as `cbcan_node` spins it), a bare Trigger node '
               '(its own SingleThreadedExecutor thread), raw python-canopen and the client '
               '(SingleThreadedExecutor on the main thread). *udp_multicast*: the device '
               'process, a Trigger server process (`rclpy.spin`, the default executor), the '

@@ -31,7 +31,7 @@ def main(argv=None) -> int:
     """Serve ``<namespace>/trigger`` until SIGINT or SIGTERM."""
     argv = sys.argv[1:] if argv is None else argv
     exit_on_sigterm()
-    node_module, = import_retrying('cbcan_ros.ros.node')
+    node_module, = import_retrying('cbcan_ros.ros.interface')
     rclpy.init()
     server = TriggerNode(argv[0], node_module.SERVICE_QOS)
     send({'ready': True})

@@ -20,7 +20,8 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
 from cbcan_ros.msg import NodeStates  # noqa: E402
-from cbcan_ros.ros.node import CbcanNode, NODE_STATES_QOS, SERVICE_QOS  # noqa: E402
+from cbcan_ros.ros.interface import NODE_STATES_QOS, SERVICE_QOS  # noqa: E402
+from cbcan_ros.ros.node import CbcanNode  # noqa: E402
 from cbcan_ros.srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite  # noqa: E402
 
 SERVICE_TYPES = {
@@ -107,7 +108,7 @@ class Harness:
 
     def device(self, node_id: int):
         """Return the simulated device with ``node_id``."""
-        return next(d for d in self.node._simulated if d.node_id == node_id)
+        return next(d for d in self.node.interface.simulated_devices if d.node_id == node_id)
 
     def client(self, service: str):
         """Return (creating once) a client of the gateway's ``service``."""

@@ -90,7 +90,7 @@ def call(client, request, what: str, gateway: NodeProcess, timeout: float = 10.0
 
 def service_client(client_node, service_type, name: str, gateway: NodeProcess):
     """Return a client of the child's service ``name``, failing with its output if absent."""
-    from cbcan_ros.ros.node import SERVICE_QOS
+    from cbcan_ros.ros.interface import SERVICE_QOS
     made = client_node.create_client(service_type, name, qos_profile=SERVICE_QOS)
     if not made.wait_for_service(timeout_sec=START_TIMEOUT):
         raise AssertionError(f'{name} did not appear within {START_TIMEOUT} s (exit status '

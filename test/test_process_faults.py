@@ -14,7 +14,7 @@ import can
 import pytest
 
 from cbcan_ros.msg import NodeStates
-from cbcan_ros.ros.node import NODE_STATES_QOS
+from cbcan_ros.ros.interface import NODE_STATES_QOS
 from cbcan_ros.simulation.canopen_device import SimulatedDevice
 from cbcan_ros.srv import SdoRead, SdoWrite
 

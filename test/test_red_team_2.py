@@ -21,7 +21,7 @@ from node_process import service_client, START_TIMEOUT
 CLIENT = """
 import sys
 import rclpy
-from cbcan_ros.ros.node import SERVICE_QOS
+from cbcan_ros.ros.interface import SERVICE_QOS
 from cbcan_ros.srv import SdoRead
 rclpy.init()
 node = rclpy.create_node('doomed_client')

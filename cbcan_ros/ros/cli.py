@@ -31,7 +31,7 @@ from ..core.sdo import MAX_NODE_ID, MAX_TIMEOUT
 from ..msg import NodeStates, SdoAccess
 from ..plc.mailbox import Cbcan, Me3can
 from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
-from .node import NODE_STATES_QOS, SERVICE_QOS
+from .interface import NODE_STATES_QOS, SERVICE_QOS
 
 DEFAULT_GATEWAY = '/can0/cbcan'
 DEFAULT_WAIT = 5.0

@@ -16,11 +16,12 @@ and an answer never waits for the executor. rclcpp has this as deferred response
 no such API yet, which is why the wrapping lives here, in one place.
 """
 
+import asyncio
 from concurrent.futures import Future
 import logging
 import threading
 import time
-from typing import Callable, Dict, Tuple
+from typing import Callable, Coroutine, Dict, Optional, Tuple
 
 LOGGER = logging.getLogger(__name__)
 
@@ -73,9 +74,14 @@ class DeferredService:
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
         self._send_failures = set()
+        self._node = node
         self._service = node.create_service(srv_type, name, self._take, **options)
         self._send = self._service.send_response
         self._service.send_response = self._send_when_ready
+
+    def destroy(self) -> None:
+        """Take the service away (its calls have been answered: see CallsInProgress)."""
+        self._node.destroy_service(self._service)
 
     def _take(self, request, response):
         self._calls.begin()
@@ -112,3 +118,36 @@ class DeferredService:
                              'this kind are not logged', self._service.srv_name, kind, error)
         finally:
             self._calls.end()
+
+
+class CoroutineRunner:
+    """An asyncio event loop on a thread of its own, for calls that chain several steps.
+
+    ``submit`` returns a ``concurrent.futures.Future``, so such a call is answered through a
+    :class:`DeferredService` like any other, and the ROS executor never runs coroutines.
+    """
+
+    def __init__(self, name: str):
+        self._loop = asyncio.new_event_loop()
+        self._closed = False
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._loop.run_forever, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, coroutine: Coroutine) -> Optional[Future]:
+        """Run ``coroutine`` on the loop; return the future of its result, None once closed."""
+        with self._lock:
+            if self._closed:
+                coroutine.close()
+                return None
+            return asyncio.run_coroutine_threadsafe(coroutine, self._loop)
+
+    def close(self) -> None:
+        """Stop the loop (after the calls on it were answered) and end its thread."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join()
+        self._loop.close()

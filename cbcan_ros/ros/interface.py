@@ -1,0 +1,265 @@
+"""The one mapping of the gateway core onto a ROS node: its services, topics and timers.
+
+Both the plain node (``node.py``) and the managed node (``lifecycle_node.py``) build a
+:class:`GatewayInterface`; only when it is made and whether it is active differ. While
+inactive every call gets a clear "inactive" answer and nothing is published.
+
+An SDO call is handed to the device's worker thread and answered from there when it is done
+(``deferred.py``), so the executor keeps serving other calls, timers and publishers while a
+slow device takes its time, and holds nothing per waiting call. The mailbox, which chains
+several SDOs, runs as a coroutine on its own event loop and is answered the same way.
+"""
+
+import asyncio
+from concurrent.futures import Future
+import logging
+import threading
+
+from builtin_interfaces.msg import Time
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from ..core.gateway import Gateway, SHUTTING_DOWN
+from ..core.nmt import state_name
+from ..core.sdo import Access, check_node_id, resolved, SdoResult
+from ..msg import NodeState, NodeStates
+from ..msg import SdoResult as SdoResultMessage
+from ..plc.mailbox import Mailbox
+from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
+from .config import NodeParameters
+from .deferred import CallsInProgress, CoroutineRunner, DeferredService
+
+NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+# The default service QoS keeps 10 requests: a burst of calls (one per device, say) loses
+# the oldest before the executor takes them. A deep history keeps every request of a burst
+# (a full device queue is answered "busy"). Not keep-all: the answers share one history, and
+# a client killed mid-call stays matched until its DDS lease ends (about 20 s) without ever
+# acknowledging, so under keep-all its unacknowledged answers filled the history and every
+# later answer to everyone failed. Clients sending bursts need a history this deep too.
+SERVICE_DEPTH = 4096
+SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SERVICE_DEPTH,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+
+# The logger every module of the package logs under, shown through the node's ROS logger.
+PACKAGE = __package__.partition('.')[0]
+
+# How long shutdown waits for answers already decided to leave the node.
+ANSWER_GRACE = 1.0
+
+# What a call gets while a managed node is configured but not active. 0x08000022: "data
+# cannot be transferred because of the present device state", as during shutdown.
+INACTIVE = ('the gateway is inactive (lifecycle state inactive): activate it to use the bus; '
+            'nothing was sent')
+INACTIVE_ABORT = 0x08000022
+
+
+def _time(seconds: float) -> Time:
+    whole = int(seconds)
+    return Time(sec=whole, nanosec=int((seconds - whole) * 1e9))
+
+
+class _RosLogHandler(logging.Handler):
+    """Sends the core's Python log records (bus faults, recoveries) to the node's ROS logger."""
+
+    def __init__(self, logger):
+        super().__init__(logging.INFO)
+        self._logger = logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.levelno >= logging.ERROR:
+            self._logger.error(record.getMessage())
+        elif record.levelno >= logging.WARNING:
+            self._logger.warning(record.getMessage())
+        else:
+            self._logger.info(record.getMessage())
+
+
+def _fill_result(result, response) -> None:
+    """Write an SdoResult (or a batch's list of them) into a service response."""
+    if isinstance(result, list):
+        response.results = [
+            SdoResultMessage(success=r.success, abort_code=r.abort_code, message=r.message,
+                             data=list(r.data))
+            for r in result]
+        return
+    response.success = result.success
+    response.abort_code = result.abort_code
+    response.message = result.message
+    if hasattr(response, 'data'):
+        response.data = list(result.data)
+
+
+def _fill_registers(result, response) -> None:
+    response.registers, response.message = result
+
+
+class GatewayInterface:
+    """The gateway's services, topics and timers on ``node``, made from its parameters.
+
+    Raises ValueError naming the parameter when one is wrong; then nothing is left open.
+    """
+
+    def __init__(self, node: Node, parameters: NodeParameters, active: bool = True):
+        self._node = node
+        self.active = active
+        self._log_handler = _RosLogHandler(node.get_logger())
+        core_logger = logging.getLogger(PACKAGE)
+        core_logger.setLevel(logging.INFO)
+        core_logger.addHandler(self._log_handler)
+        try:
+            self.gateway = Gateway(parameters.gateway_config())
+        except Exception:
+            core_logger.removeHandler(self._log_handler)
+            raise
+        self.simulated_devices = self._simulated_devices(parameters)
+        self.gateway.start()
+        for device in self.simulated_devices:
+            device.start()
+
+        self._calls = CallsInProgress()
+        self._mailbox_loop = CoroutineRunner('plc mailbox')
+        self._mailbox = Mailbox(self.gateway, asyncio.wrap_future)
+        # Calls must overlap: a slow device never holds up the others or the state topic.
+        options = dict(qos_profile=SERVICE_QOS, callback_group=ReentrantCallbackGroup())
+        self._deferred = [
+            DeferredService(node, service_type, f'~/{name}', start, fill, self._calls,
+                            **options)
+            for service_type, name, start, fill in (
+                (SdoRead, 'sdo_read', self._start_read, _fill_result),
+                (SdoWrite, 'sdo_write', self._start_write, _fill_result),
+                (SdoBatch, 'sdo_batch', self._start_batch, _fill_result),
+                (RegisterMailbox, 'plc_mailbox', self._start_mailbox, _fill_registers))]
+        self._services = [
+            node.create_service(service_type, f'~/{name}', callback, **options)
+            for service_type, name, callback in (
+                (NmtCommand, 'nmt_command', self._on_nmt_command),
+                (NmtState, 'nmt_state', self._on_nmt_state))]
+
+        self._states_publisher = node.create_publisher(NodeStates, '~/node_states',
+                                                       NODE_STATES_QOS)
+        # A change is published from the thread that saw it (rclpy's EventsExecutor takes no
+        # guard conditions); the lock keeps an older picture from being published last.
+        self._states_lock = threading.Lock()
+        self.gateway.monitor.add_listener(self._publish_states)
+        self._timers = [node.create_timer(parameters.value('state_publish_period'),
+                                          self._publish_states)]
+        self._publish_states()
+        config = self.gateway.config
+        node.get_logger().info(
+            f'CANopen gateway on {config.interface} channel {config.channel!r}; '
+            f'simulated devices: {[d.node_id for d in self.simulated_devices] or "none"}')
+
+    def _simulated_devices(self, parameters: NodeParameters) -> list:
+        node_ids = parameters.node_ids('simulation.devices')
+        if not node_ids:
+            return []
+        # Only for trying the gateway without hardware: a real bus never loads the simulator.
+        from ..simulation.canopen_device import SimulatedDevice
+        return [SimulatedDevice(node_id, parameters.simulation_eds(),
+                                self.gateway.config.interface, self.gateway.config.channel)
+                for node_id in node_ids]
+
+    def activate(self) -> None:
+        """Serve calls and publish (a managed node's activate transition)."""
+        self.active = True
+        self._publish_states()
+
+    def deactivate(self) -> None:
+        """Answer every new call "inactive" and stop publishing; calls under way finish."""
+        self.active = False
+
+    def shut_down(self) -> None:
+        """Answer every waiting call ("shutting down"), abort running transfers, close the bus.
+
+        SDO and mailbox answers leave from the thread that resolves them; this waits up to
+        ``ANSWER_GRACE`` seconds for all to leave.
+        """
+        self.gateway.stop()
+        self._calls.wait_until_idle(ANSWER_GRACE)
+        self._mailbox_loop.close()
+
+    def destroy(self) -> None:
+        """Shut down, stop the simulated devices and take the services and topics away."""
+        self.shut_down()
+        for device in self.simulated_devices:
+            device.stop()
+        node = self._node
+        for deferred in self._deferred:
+            deferred.destroy()
+        for service in self._services:
+            node.destroy_service(service)
+        for timer in self._timers:
+            node.destroy_timer(timer)
+        with self._states_lock:
+            publisher, self._states_publisher = self._states_publisher, None
+        node.destroy_publisher(publisher)
+        logging.getLogger(PACKAGE).removeHandler(self._log_handler)
+
+    def _start_read(self, request) -> Future:
+        if not self.active:
+            return resolved(SdoResult.aborted(INACTIVE_ABORT, INACTIVE))
+        return self.gateway.sdo_read(request.node_id, request.index, request.subindex,
+                                     request.max_size, request.timeout)
+
+    def _start_write(self, request) -> Future:
+        if not self.active:
+            return resolved(SdoResult.aborted(INACTIVE_ABORT, INACTIVE))
+        return self.gateway.sdo_write(request.node_id, request.index, request.subindex,
+                                      bytes(request.data), request.timeout)
+
+    def _start_batch(self, request) -> Future:
+        if not self.active:
+            return resolved([SdoResult.aborted(INACTIVE_ABORT, INACTIVE)
+                             for _ in request.accesses])
+        return self.gateway.sdo_batch(
+            [Access(a.node_id, a.index, a.subindex, a.write, bytes(a.data), a.max_size)
+             for a in request.accesses], request.timeout)
+
+    def _start_mailbox(self, request) -> Future:
+        registers = list(request.registers)
+        if not self.active:
+            return resolved((registers, INACTIVE))
+        running = self._mailbox_loop.submit(self._mailbox.execute(request.format, registers))
+        return running or resolved((registers, SHUTTING_DOWN))
+
+    def _on_nmt_command(self, request, response):
+        if not self.active:
+            response.success, response.message = False, INACTIVE
+            return response
+        result = self.gateway.nmt_command(request.node_id, request.command)
+        response.success = result.success
+        response.message = result.message
+        return response
+
+    def _on_nmt_state(self, request, response):
+        problem = INACTIVE if not self.active else check_node_id(request.node_id, '1..127',
+                                                                 lowest=1)
+        if problem:
+            response.success = False
+            response.state = NmtState.Response.NOT_DETECTED
+            response.state_name = state_name(response.state)
+            response.last_seen_age = -1.0
+            response.message = problem
+            return response
+        status = self.gateway.monitor.status(request.node_id)
+        response.success = True
+        response.state = status.state
+        response.state_name = status.state_name
+        response.last_seen_age = status.last_seen_age
+        return response
+
+    def _publish_states(self) -> None:
+        with self._states_lock:
+            if not self.active or self._states_publisher is None:
+                return
+            message = NodeStates(stamp=self._node.get_clock().now().to_msg())
+            message.nodes = [
+                NodeState(node_id=status.node_id, state=status.state,
+                          state_name=status.state_name,
+                          last_seen=_time(status.last_seen) if status.last_seen else Time())
+                for status in self.gateway.monitor.statuses()]
+            self._states_publisher.publish(message)

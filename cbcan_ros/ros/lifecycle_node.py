@@ -1,0 +1,87 @@
+"""The managed gateway node (``cbcan_lifecycle_node``), as ROS hardware drivers ship one.
+
+Same parameters, services and topics as ``cbcan_node`` (one :class:`GatewayInterface`),
+driven by the standard lifecycle transitions (``ros2 lifecycle set /can0/cbcan configure``):
+
+- configure: check the parameters and open the bus; the services exist but answer "inactive";
+- activate: serve the services and publish the topics;
+- deactivate: answer every new call "inactive" (calls under way finish) and stop publishing;
+- cleanup, shutdown: answer waiting calls, close the bus, take the services away.
+
+A wrong parameter fails configure with the reason in the log; fix it (``ros2 param set``)
+and configure again.
+"""
+
+from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
+
+from .config import NodeParameters
+from .interface import GatewayInterface
+from .node import run
+
+
+class CbcanLifecycleNode(LifecycleNode):
+    """One CAN bus as a managed node: the bus is open from configure to cleanup."""
+
+    def __init__(self, **kwargs):
+        super().__init__('cbcan', **kwargs)
+        self._parameters = NodeParameters(self)
+        self.interface = None
+
+    @property
+    def gateway(self):
+        """The CANopen core this node maps (None while unconfigured)."""
+        return self.interface.gateway if self.interface else None
+
+    def on_configure(self, state: State) -> TransitionCallbackReturn:
+        """Check the parameters, open the bus; services answer "inactive" until activate."""
+        try:
+            self.interface = GatewayInterface(self, self._parameters, active=False)
+        except ValueError as error:
+            self.get_logger().error(f'cannot configure: {error}')
+            return TransitionCallbackReturn.FAILURE
+        return super().on_configure(state)
+
+    def on_activate(self, state: State) -> TransitionCallbackReturn:
+        """Serve calls and publish."""
+        self.interface.activate()
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        """Answer new calls "inactive"; the bus stays open and node states stay watched."""
+        self.interface.deactivate()
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: State) -> TransitionCallbackReturn:
+        """Close the bus and take the services and topics away."""
+        self._close()
+        return super().on_cleanup(state)
+
+    def on_shutdown(self, state: State) -> TransitionCallbackReturn:
+        """Close the bus (from any state)."""
+        self._close()
+        return super().on_shutdown(state)
+
+    def on_error(self, state: State) -> TransitionCallbackReturn:
+        """Close the bus after a failed transition, so configure can start afresh."""
+        self._close()
+        return TransitionCallbackReturn.SUCCESS
+
+    def shut_down_gateway(self) -> None:
+        """Answer every waiting call ("shutting down"), abort running transfers, close the bus."""
+        if self.interface:
+            self.interface.shut_down()
+
+    def destroy_node(self) -> None:
+        """Close the bus if it is open, then destroy the node."""
+        self._close()
+        super().destroy_node()
+
+    def _close(self) -> None:
+        interface, self.interface = self.interface, None
+        if interface:
+            interface.destroy()
+
+
+def main(args=None) -> int:
+    """Run the managed gateway node until SIGINT or SIGTERM (it starts unconfigured)."""
+    return run(CbcanLifecycleNode, 'cbcan_lifecycle_node', args)
