@@ -191,13 +191,16 @@ def gateway(make_gateway):
 
 @pytest.fixture
 def start_node():
-    """Return a factory ``start_node(arguments, port=None)``; every process is ended after."""
+    """Return a factory ``start_node(arguments, port=None, program='cbcan_node')``.
+
+    Every process it starts is ended after the test.
+    """
     import node_process  # it imports this module: a top-level import would be circular
 
     processes = []
 
-    def factory(arguments, port=None) -> 'node_process.NodeProcess':
-        process = node_process.NodeProcess(arguments, port)
+    def factory(arguments, port=None, program='cbcan_node') -> 'node_process.NodeProcess':
+        process = node_process.NodeProcess(arguments, port, program)
         processes.append(process)
         return process
 

@@ -38,14 +38,14 @@ def random_bus():
 
 
 class NodeProcess:
-    """``cbcan_node`` in a child process; its output goes to a file, read on failure."""
+    """A gateway node in a child process; its output goes to a file, read on failure."""
 
-    def __init__(self, arguments, port: Optional[int] = None):
+    def __init__(self, arguments, port: Optional[int] = None, program: str = 'cbcan_node'):
         self._output = tempfile.TemporaryFile(mode='w+')
         env = dict(os.environ)
         if port is not None:
             env['CAN_CONFIG'] = json.dumps({'port': port})
-        self.process = subprocess.Popen([executable('cbcan_node'), '--ros-args', *arguments],
+        self.process = subprocess.Popen([executable(program), '--ros-args', *arguments],
                                         stdout=self._output, stderr=subprocess.STDOUT,
                                         env=env, text=True)
 

@@ -173,6 +173,7 @@ class BusSupervisor:
             reason = self._receive(bus)
             self._close(bus)
             if reason is None:
+                LOGGER.info('CAN bus %s is closed', self.description)
                 return
             self._going_down(reason)
             if time.monotonic() - opened >= MAX_RETRY:

@@ -24,7 +24,7 @@ class CbcanLifecycleNode(LifecycleNode):
 
     def __init__(self, **kwargs):
         super().__init__('cbcan', **kwargs)
-        self._parameters = NodeParameters(self)
+        self._node_parameters = NodeParameters(self)
         self.interface = None
 
     @property
@@ -35,7 +35,7 @@ class CbcanLifecycleNode(LifecycleNode):
     def on_configure(self, state: State) -> TransitionCallbackReturn:
         """Check the parameters, open the bus; services answer "inactive" until activate."""
         try:
-            self.interface = GatewayInterface(self, self._parameters, active=False)
+            self.interface = GatewayInterface(self, self._node_parameters, active=False)
         except ValueError as error:
             self.get_logger().error(f'cannot configure: {error}')
             return TransitionCallbackReturn.FAILURE
