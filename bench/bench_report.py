@@ -35,6 +35,8 @@ ROWS = (
     ('3', 'burst_sdo_150', '`sdo_read`, bursts of 150 concurrent calls over 10 devices'),
     ('3', 'burst_trigger_600', 'Trigger, bursts of 600 concurrent calls'),
     ('3', 'burst_sdo_600', '`sdo_read`, bursts of 600 concurrent calls over 10 devices'),
+    ('4', 'batch_raw_3', 'raw python-canopen, 999 uploads over the 3 batch devices, one thread '
+                         'each: the ceiling of these devices'),
     ('4', 'batch_1', '`sdo_batch` of 1,000 reads, 1 device'),
     ('4', 'batch_3', '`sdo_batch` of 1,000 reads, 3 devices'),
     ('4', 'batch_8', '`sdo_batch` of 1,000 reads, 8 devices'),
@@ -167,6 +169,9 @@ def ratios(rows: Dict[str, dict]) -> List[tuple]:
                 *check(value, lambda v: v >= 4000,
                        f'{_number(value)} ({_number((value or 0) / WIRE_LIMIT * 100)} % '
                        'of wire)' if value else 'n/a')))
+    value = _ratio(rows, 'batch_3', ['batch_raw_3'])
+    out.append(('sdo_batch over 3 devices / raw python-canopen on them (not a target: '
+                'what the simulated devices allow)', '-', _number(value, 2), None))
     for kind in ('segmented', 'block'):
         value = _ratio(rows, f'{kind}_service', [f'{kind}_raw'])
         out.append((f'64 KiB {kind}: service KiB/s / raw KiB/s', '>= 0.8',
