@@ -34,6 +34,8 @@ from ..plc.mailbox import Mailbox
 from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 from .config import NodeParameters
 from .deferred import CallsInProgress, DeferredService
+from .diagnostics import Diagnostics
+from .emcy import EmcyPublisher
 
 NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -109,6 +111,7 @@ class CbcanNode(Node):
         core_logger.addHandler(self._log_handler)
         parameters = NodeParameters(self)
         self.gateway = Gateway(parameters.gateway_config())
+        self._emcy = EmcyPublisher(self, self.gateway)  # before start: boot-time EMCYs too
         self._simulated = self._simulated_devices(parameters)
         self.gateway.start()
         for device in self._simulated:
@@ -136,6 +139,8 @@ class CbcanNode(Node):
         self.gateway.monitor.add_listener(self._states_changed.trigger)
         self.create_timer(parameters.value('state_publish_period'), self._publish_states)
         self._publish_states()
+        self._diagnostics = Diagnostics(self, self.gateway)
+        self.create_timer(parameters.value('diagnostics_period'), self._diagnostics.publish)
         config = self.gateway.config
         self.get_logger().info(
             f'CANopen gateway on {config.interface} channel {config.channel!r}; '
