@@ -241,13 +241,14 @@ def answer(future: Future, result) -> None:
 class SdoStatistics:
     """What one device's SDO channel answered since the gateway started.
 
-    Every access counts once, in a batch too: ``requests`` all of them, ``timeouts`` those
-    answered 0x05040000 (no answer in time, or the time ran out in the queue), ``aborts``
-    those answered with any other abort code (the device's or the gateway's). Answers
-    without an abort code (bus down, shutting down) count only as requests.
-    ``latency_p50`` is the median time, in seconds, from the first frame of a successful
-    access to its answer (queueing not included; a batch counts its average per access),
-    over the last ``LATENCY_SAMPLES`` of them; None before the first.
+    Every access handed to the channel counts once, in a batch too (one refused before, for
+    a bad field, by write protection or while the bus is down, never reaches it):
+    ``requests`` all of them, ``timeouts`` those answered 0x05040000 (no answer in time, or
+    the time ran out in the queue), ``aborts`` those answered with any other abort code (the
+    device's or the gateway's). Answers without an abort code (the bus went down, shutting
+    down) count only as requests. ``latency_p50`` is the median time, in seconds, from the
+    first frame of a successful access to its answer (queueing not included; a batch counts
+    its average per access), over the last ``LATENCY_SAMPLES`` of them; None before the first.
     """
 
     requests: int = 0
