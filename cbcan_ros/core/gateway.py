@@ -1,4 +1,4 @@
-"""The gateway core: one CAN bus, one canopen Network, SDO channels, NMT and node states.
+"""The gateway core: one CAN bus, one canopen Network, SDO channels, NMT, node states, EMCY.
 
 Knows nothing of ROS. The ROS node (``node.py``) and the PLC mailbox (``mailbox.py``) are
 both thin layers over :class:`Gateway`, so there is exactly one SDO and one NMT code path.
@@ -18,6 +18,7 @@ from canopen import objectdictionary as od
 
 from . import abort_codes, nmt
 from .bus import BusDown, BusStatus, BusSupervisor
+from .emcy import EmcyMonitor
 from .sdo import (
     Access,
     check_node_id,
@@ -29,6 +30,7 @@ from .sdo import (
     run_guarded,
     SdoChannel,
     SdoResult,
+    SdoStatistics,
 )
 from .sdo_client import StrictSdoClient
 from .write_protection import WriteProtection
@@ -138,6 +140,7 @@ class Gateway:
                                             config.expected_nodes)
         self._guarding = nmt.NodeGuarding(self.network, config.guarded_nodes,
                                           config.guard_period)
+        self.emcy = EmcyMonitor(self.network)
         self._deadlines = Deadlines()
         self._channels: Dict[int, SdoChannel] = {}
         self._lock = threading.Lock()
@@ -149,9 +152,16 @@ class Gateway:
         """Return whether the bus is up, why not, and how often it was reopened."""
         return self.bus.status
 
+    def sdo_statistics(self) -> Dict[int, SdoStatistics]:
+        """Return the SDO statistics of every device that was sent a request, by node id."""
+        with self._lock:
+            channels = dict(self._channels)
+        return {node_id: channel.statistics() for node_id, channel in sorted(channels.items())}
+
     def start(self) -> None:
         """Open the bus (or keep trying in the background) and watch node states."""
         self.monitor.start()
+        self.emcy.start()
         self._guarding.start()
         self.bus.start()
 
@@ -173,6 +183,7 @@ class Gateway:
         for channel in channels:
             channel.join(1.0)
         self.monitor.stop()
+        self.emcy.stop()
         self._deadlines.stop()
         self.bus.stop()
 

@@ -17,6 +17,7 @@ import io
 import itertools
 import logging
 import math
+import statistics
 import threading
 import time
 from typing import Callable, List, Optional, Sequence
@@ -31,6 +32,10 @@ LOGGER = logging.getLogger(__name__)
 
 MAX_NODE_ID = 127
 MAX_TIMEOUT = 60.0
+
+# The p50 latency of a device is taken over its last this many successful accesses: a
+# bounded sample, so a long-running gateway holds a few kilobytes per device, not a history.
+LATENCY_SAMPLES = 1000
 
 
 @dataclass(frozen=True)
@@ -232,6 +237,26 @@ def answer(future: Future, result) -> None:
         future.set_result(result)
 
 
+@dataclass(frozen=True)
+class SdoStatistics:
+    """What one device's SDO channel answered since the gateway started.
+
+    Every access handed to the channel counts once, in a batch too (one refused before, for
+    a bad field, by write protection or while the bus is down, never reaches it):
+    ``requests`` all of them, ``timeouts`` those answered 0x05040000 (no answer in time, or
+    the time ran out in the queue), ``aborts`` those answered with any other abort code (the
+    device's or the gateway's). Answers without an abort code (the bus went down, shutting
+    down) count only as requests. ``latency_p50`` is the median time, in seconds, from the
+    first frame of a successful access to its answer (queueing not included; a batch counts
+    its average per access), over the last ``LATENCY_SAMPLES`` of them; None before the first.
+    """
+
+    requests: int = 0
+    aborts: int = 0
+    timeouts: int = 0
+    latency_p50: Optional[float] = None
+
+
 def resolved(result) -> Future:
     """Return a future that already holds ``result`` (for answers that need no bus)."""
     future: Future = Future()
@@ -246,6 +271,7 @@ class _Job:
     timeout: float
     future: Future
     count: Optional[int]  # a batch's number of accesses; None for a single access
+    started: Optional[float] = None  # time.monotonic() when the worker took it
 
     def failed(self, result: SdoResult) -> object:
         """Return the job's answer when it ends with ``result`` before it ran."""
@@ -313,6 +339,10 @@ class SdoChannel:
         self._queue: deque = deque()
         self._changed = threading.Condition()
         self._closed: Optional[SdoResult] = None
+        self._requests = 0
+        self._aborts = 0
+        self._timeouts = 0
+        self._latencies: deque = deque(maxlen=LATENCY_SAMPLES)
         self._thread = threading.Thread(target=self._work, name=f'sdo-node-{node_id}',
                                         daemon=True)
         self._thread.start()
@@ -341,7 +371,7 @@ class SdoChannel:
             jobs = list(self._queue)
             self._queue.clear()
         for job in jobs:
-            answer(job.future, job.failed(SdoResult.failed(reason)))
+            self._resolve(job, job.failed(SdoResult.failed(reason)))
         self._client.cancel(reason, abort_code)
 
     def close(self, reason: str, abort_code: Optional[int]) -> None:
@@ -355,20 +385,30 @@ class SdoChannel:
         """Wait for the worker to end (after :meth:`close`)."""
         self._thread.join(timeout)
 
+    def statistics(self) -> SdoStatistics:
+        """Return the requests, aborts, timeouts and p50 latency of this device so far."""
+        with self._changed:
+            latencies = list(self._latencies)
+            counts = (self._requests, self._aborts, self._timeouts)
+        return SdoStatistics(*counts, statistics.median(latencies) if latencies else None)
+
     def _submit(self, run: Callable[[float], object], timeout: float,
                 count: Optional[int]) -> Future:
         job = _Job(run, time.monotonic() + timeout, timeout, Future(), count)
         with self._changed:
-            if self._closed is not None:
-                return resolved(job.failed(self._closed))
-            if len(self._queue) >= self._queue_limit:
-                return resolved(job.failed(SdoResult.failed(
+            refusal = self._closed
+            if refusal is None and len(self._queue) >= self._queue_limit:
+                refusal = SdoResult.failed(
                     f'node {self.node_id} is busy: {self._queue_limit} requests are already '
                     f'waiting for it (parameter sdo.queue_limit); nothing was sent',
-                    abort_codes.NO_RESOURCE)))
-            self._queue.append(job)
-            self._changed.notify()
-        self._deadlines.watch(job.deadline, lambda: self._expire(job))
+                    abort_codes.NO_RESOURCE)
+            if refusal is None:
+                self._queue.append(job)
+                self._changed.notify()
+        if refusal is not None:
+            self._resolve(job, job.failed(refusal))
+        else:
+            self._deadlines.watch(job.deadline, lambda: self._expire(job))
         return job.future
 
     def _expire(self, job: _Job) -> None:
@@ -376,7 +416,7 @@ class SdoChannel:
             if job not in self._queue:
                 return  # running or answered: the transfer keeps its own deadline
             self._queue.remove(job)
-        answer(job.future, job.failed(SdoResult.aborted(
+        self._resolve(job, job.failed(SdoResult.aborted(
             abort_codes.TIMEOUT, f'waited {job.timeout:g} s behind earlier requests to node '
                                  f'{self.node_id}; nothing was sent')))
 
@@ -388,7 +428,35 @@ class SdoChannel:
                 if not self._queue:
                     return
                 job = self._queue.popleft()
-            answer(job.future, job.run(job.deadline))
+                job.started = time.monotonic()
+            self._resolve(job, job.run(job.deadline))
+
+    def _resolve(self, job: _Job, result) -> None:
+        """Give ``job`` its one answer; every answer of this channel passes here.
+
+        The statistics are counted first, so a caller holding its answer finds it counted.
+        """
+        if job.future.done():
+            return  # a job is answered once by design: a stray second answer is not counted
+        results = result if job.count is not None else (result,)
+        successes = aborts = timeouts = 0
+        for one in results:
+            if one.success:
+                successes += 1
+            elif one.abort_code == abort_codes.TIMEOUT:
+                timeouts += 1
+            elif one.abort_code:
+                aborts += 1
+        latency = None
+        if job.started is not None and successes:
+            latency = (time.monotonic() - job.started) / len(results)
+        with self._changed:
+            self._requests += len(results)
+            self._aborts += aborts
+            self._timeouts += timeouts
+            if latency is not None:
+                self._latencies.extend([latency] * min(successes, LATENCY_SAMPLES))
+        answer(job.future, result)
 
     def _access(self, access: Access, deadline: float) -> SdoResult:
         index, subindex = access.index, access.subindex

@@ -87,6 +87,11 @@ class NodeParameters:
                       'Seconds between publications of ~/node_states when nothing changes',
                       floating_point_range=[FloatingPointRange(
                           from_value=0.01, to_value=3600.0, step=0.0)])
+        self._declare('diagnostics_period', 1.0,
+                      'Seconds between publications of the bus and device status on '
+                      '/diagnostics (diagnostic_msgs/DiagnosticArray)',
+                      floating_point_range=[FloatingPointRange(
+                          from_value=0.01, to_value=3600.0, step=0.0)])
         self._declare('simulation.devices', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) of simulated CANopen devices to put on the bus, for '
                       'trying the gateway without hardware; empty on a real bus')

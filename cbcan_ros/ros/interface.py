@@ -29,6 +29,8 @@ from ..plc.mailbox import Mailbox
 from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 from .config import NodeParameters
 from .deferred import CallsInProgress, CoroutineRunner, DeferredService
+from .diagnostics import Diagnostics
+from .emcy import EmcyPublisher
 
 NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -115,6 +117,8 @@ class GatewayInterface:
         except Exception:
             core_logger.removeHandler(self._log_handler)
             raise
+        # Before the bus opens, so an EMCY a device sends as it boots is published too.
+        self._emcy = EmcyPublisher(node, self.gateway, lambda: self.active)
         self.simulated_devices = self._simulated_devices(parameters)
         self.gateway.start()
         for device in self.simulated_devices:
@@ -145,8 +149,11 @@ class GatewayInterface:
         # guard conditions); the lock keeps an older picture from being published last.
         self._states_lock = threading.Lock()
         self.gateway.monitor.add_listener(self._publish_states)
+        self._diagnostics = Diagnostics(node, self.gateway)
         self._timers = [node.create_timer(parameters.value('state_publish_period'),
-                                          self._publish_states)]
+                                          self._publish_states),
+                        node.create_timer(parameters.value('diagnostics_period'),
+                                          self._publish_diagnostics)]
         self._publish_states()
         config = self.gateway.config
         node.get_logger().info(
@@ -197,6 +204,8 @@ class GatewayInterface:
         with self._states_lock:
             publisher, self._states_publisher = self._states_publisher, None
         node.destroy_publisher(publisher)
+        self._emcy.destroy()
+        self._diagnostics.destroy()
         logging.getLogger(PACKAGE).removeHandler(self._log_handler)
 
     def _start_read(self, request) -> Future:
@@ -251,6 +260,10 @@ class GatewayInterface:
         response.state_name = status.state_name
         response.last_seen_age = status.last_seen_age
         return response
+
+    def _publish_diagnostics(self) -> None:
+        if self.active:
+            self._diagnostics.publish()
 
     def _publish_states(self) -> None:
         with self._states_lock:

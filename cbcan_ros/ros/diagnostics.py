@@ -1,0 +1,162 @@
+"""``/diagnostics``: the CAN bus and every device, as diagnostic_updater would publish them.
+
+diagnostic_updater has no wheel here, so the ``diagnostic_msgs/DiagnosticArray`` is built
+directly, following the updater's conventions so that diagnostic_aggregator, rqt_robot_monitor
+and the like work unchanged:
+
+- the absolute topic ``/diagnostics``, reliable, volatile, depth 1, as the updater's publisher;
+- status names ``<node name>: <what>``: ``cbcan: CAN bus``, ``cbcan: node 5``. A node in a
+  namespace is named by its fully qualified name (``/can0/cbcan: node 5``), as the updater's
+  ``use_fqn`` option does, so the gateways of two buses never share a status name;
+- ``hardware_id`` names the adapter (``socketcan:can0``) or the device
+  (``canopen node 5 on socketcan:can0``);
+- levels OK, WARN, ERROR and STALE, and the details as key-values.
+"""
+
+import time
+from typing import Dict, List, Optional
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from ..core.bus import BusStatus
+from ..core.emcy import EmcyStatus, Emergency
+from ..core.gateway import Gateway
+from ..core.nmt import NodeStatus
+from ..core.sdo import SdoStatistics
+
+DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE)
+
+OK, WARN, ERROR, STALE = (ord(level) for level in (
+    DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR, DiagnosticStatus.STALE))
+
+
+def _status(level: int, name: str, message: str, hardware_id: str,
+            values: Dict[str, object]) -> DiagnosticStatus:
+    return DiagnosticStatus(level=bytes([level]), name=name, message=message,
+                            hardware_id=hardware_id,
+                            values=[KeyValue(key=key, value=str(value))
+                                    for key, value in values.items()])
+
+
+def _emcy_text(emergency: Optional[Emergency]) -> str:
+    return emergency.summary if emergency else 'none'
+
+
+class Diagnostics:
+    """Builds and publishes the gateway's ``DiagnosticArray``; the node calls :meth:`publish`.
+
+    - ``<node>: CAN bus``: ERROR while the bus is down (the message says why), WARN when error
+      frames arrived since the last publication, else OK. Frame rates are taken between two
+      publications.
+    - ``<node>: node <id>`` for every device that is expected (parameter ``nodes``), was
+      heard, sent an EMCY or was sent an SDO request: ERROR when expected but silent
+      (NOT_DETECTED), STALE when a device that is not expected fell silent, WARN while it has
+      an active EMCY (one not cleared by an error reset), else OK.
+    """
+
+    def __init__(self, node: Node, gateway: Gateway):
+        self._node = node
+        self._gateway = gateway
+        self._publisher = node.create_publisher(DiagnosticArray, '/diagnostics',
+                                                DIAGNOSTICS_QOS)
+        self._prefix = (node.get_name() if node.get_namespace() == '/'
+                        else node.get_fully_qualified_name())
+        self._bus_id = gateway.bus.description
+        self._expected = frozenset(gateway.config.expected_nodes)
+        self._previous = (time.monotonic(), gateway.bus_status)
+
+    def publish(self) -> None:
+        """Publish the status of the bus and of every device known."""
+        bus = self._gateway.bus_status
+        array = DiagnosticArray()
+        array.header.stamp = self._node.get_clock().now().to_msg()
+        array.status = [self._bus_status(bus), *self._device_statuses(bus.up)]
+        self._publisher.publish(array)
+
+    def destroy(self) -> None:
+        """Take the publisher away."""
+        self._node.destroy_publisher(self._publisher)
+
+    def _bus_status(self, status: BusStatus) -> DiagnosticStatus:
+        now = time.monotonic()
+        then, before = self._previous
+        self._previous = (now, status)
+        elapsed = max(now - then, 1e-6)
+        errors = status.error_frames - before.error_frames
+        if not status.up:
+            level, message = ERROR, f'down: {status.reason}'
+        elif errors:
+            level = WARN
+            message = f'up; {errors} error frame{"s" * (errors > 1)} in the last {elapsed:.1f} s'
+        else:
+            level, message = OK, 'up'
+        return _status(level, f'{self._prefix}: CAN bus', message, self._bus_id, {
+            'State': 'up' if status.up else 'down',
+            'Reason down': status.reason,
+            'Reopen count': status.reopen_count,
+            'Frames received/s':
+                f'{(status.frames_received - before.frames_received) / elapsed:.1f}',
+            'Frames sent/s': f'{(status.frames_sent - before.frames_sent) / elapsed:.1f}',
+            'Error frames/s': f'{errors / elapsed:.1f}',
+            'Frames received': status.frames_received,
+            'Frames sent': status.frames_sent,
+            'Error frames': status.error_frames,
+        })
+
+    def _device_statuses(self, bus_up: bool) -> List[DiagnosticStatus]:
+        gateway = self._gateway
+        heartbeats = {status.node_id: status for status in gateway.monitor.statuses()}
+        emergencies = {status.node_id: status for status in gateway.emcy.statuses()}
+        sdo = gateway.sdo_statistics()
+        return [self._device_status(node_id,
+                                    heartbeats.get(node_id) or gateway.monitor.status(node_id),
+                                    emergencies.get(node_id) or EmcyStatus(node_id),
+                                    sdo.get(node_id) or SdoStatistics(), bus_up)
+                for node_id in sorted(set(heartbeats) | set(emergencies) | set(sdo))]
+
+    def _device_status(self, node_id: int, heartbeat: NodeStatus, emcy: EmcyStatus,
+                       sdo: SdoStatistics, bus_up: bool) -> DiagnosticStatus:
+        expected = node_id in self._expected
+        heard = heartbeat.last_seen is not None
+        if heartbeat.detected:
+            level, message = OK, heartbeat.state_name
+        elif expected:
+            level = ERROR
+            message = (f'expected but silent for {heartbeat.last_seen_age:.1f} s' if heard
+                       else 'expected but never heard')
+        elif heard:
+            level, message = STALE, f'silent for {heartbeat.last_seen_age:.1f} s'
+        else:
+            level, message = OK, 'no heartbeat (not an expected node)'
+        if not heartbeat.detected and not bus_up:
+            message += ' (the CAN bus is down)'
+        if emcy.active is not None:
+            level = max(level, WARN)
+            message += f'; active EMCY {emcy.active.summary}'
+        last = emcy.last
+        latency = sdo.latency_p50
+        return _status(level, f'{self._prefix}: node {node_id}', message,
+                       f'canopen node {node_id} on {self._bus_id}', {
+                           'NMT state': heartbeat.state_name,
+                           'Expected': 'yes' if expected else 'no',
+                           'Last heartbeat age (s)':
+                               f'{heartbeat.last_seen_age:.2f}' if heard else 'never',
+                           'Active EMCY': _emcy_text(emcy.active),
+                           'Last EMCY': _emcy_text(last),
+                           'Last EMCY error register':
+                               f'0x{last.error_register:02X}' if last else 'none',
+                           'Last EMCY manufacturer data':
+                               last.manufacturer_data.hex(' ') if last else 'none',
+                           'Last EMCY age (s)':
+                               f'{time.time() - last.received:.1f}' if last else 'never',
+                           'Malformed EMCY frames': emcy.malformed,
+                           'SDO requests': sdo.requests,
+                           'SDO aborts': sdo.aborts,
+                           'SDO timeouts': sdo.timeouts,
+                           'SDO latency p50 (ms)':
+                               f'{latency * 1000:.2f}' if latency is not None else 'none',
+                       })

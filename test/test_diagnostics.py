@@ -1,0 +1,137 @@
+"""``/diagnostics`` of a gateway node in this process: bus and device levels as monitors see them.
+
+The faults come from the fault-injecting python-can bus (test/faulty_bus.py) and from frames
+forged on a raw bus of the gateway's channel; a subscriber reads ``/diagnostics``.
+"""
+
+import pathlib
+import threading
+
+import can
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+import pytest
+
+from cbcan_ros.ros.diagnostics import DIAGNOSTICS_QOS
+from cbcan_ros.simulation.canopen_device import SimulatedDevice
+
+from conftest import new_channel, wait_until
+import faulty_bus
+from faulty_bus import FaultController
+
+EDS = str(pathlib.Path(__file__).resolve().parent.parent / 'config' / 'simulated_device.eds')
+OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR,
+                          DiagnosticStatus.STALE)
+CAN_ERR_CRTL = 0x04  # linux/can/error.h: a controller problem (not bus-off)
+
+faulty_bus.register()
+
+
+class DiagnosticsRecorder:
+    """Keeps the latest DiagnosticStatus of every status name seen on ``/diagnostics``."""
+
+    def __init__(self, node):
+        self._lock = threading.Lock()
+        self._latest = {}
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_array,
+                                 DIAGNOSTICS_QOS)
+
+    def _on_array(self, array) -> None:
+        with self._lock:
+            for status in array.status:
+                self._latest[status.name] = status
+
+    def latest(self, name: str):
+        """Return the latest status named ``name``, or None."""
+        with self._lock:
+            return self._latest.get(name)
+
+    def wait_for(self, name: str, level, timeout: float = 5.0, where=lambda values: True):
+        """Wait for a status ``name`` at ``level`` whose key-values satisfy ``where``."""
+        def matches():
+            status = self.latest(name)
+            return status is not None and status.level == level and where(values(status))
+        wait_until(matches, timeout, f'{name!r} at level {level!r} '
+                                     f'(last seen {describe(self.latest(name))})')
+        return self.latest(name)
+
+
+def values(status) -> dict:
+    """Return a status's key-values as a dict."""
+    return {pair.key: pair.value for pair in status.values}
+
+
+def describe(status) -> str:
+    """Return a short text of a status, for failure messages."""
+    if status is None:
+        return 'nothing'
+    return f'{status.level!r} {status.message!r} {values(status)}'
+
+
+@pytest.fixture
+def start_faulty(make_gateway):
+    """Return ``start() -> (harness, faults, recorder)``: a gateway on the faulty interface.
+
+    Devices 2 and 3 run on the plain virtual bus of the channel; the gateway expects 2, 3 and 9.
+    """
+    devices = []
+
+    def factory():
+        channel = new_channel()
+        faults = FaultController.get(channel)
+        for node_id in (2, 3):
+            device = SimulatedDevice(node_id, EDS, 'virtual', channel)
+            device.start()
+            devices.append(device)
+        harness = make_gateway(can__interface='faulty', can__channel=channel,
+                               simulation__devices=None, nodes=[2, 3, 9],
+                               heartbeat__timeout=0.5, diagnostics_period=0.1)
+        return harness, faults, DiagnosticsRecorder(harness.client_node)
+
+    yield factory
+    for device in devices:
+        device.stop()
+
+
+def test_devices_are_ok_an_expected_silent_one_is_error(start_faulty):
+    harness, _faults, recorder = start_faulty()
+    hardware = f'faulty:{harness.channel}'
+    two = recorder.wait_for('cbcan: node 2', OK, where=lambda v: v['NMT state'] ==
+                            'PRE_OPERATIONAL')
+    assert two.hardware_id == f'canopen node 2 on {hardware}'
+    assert two.message == 'PRE_OPERATIONAL'
+    assert values(two)['Expected'] == 'yes'
+    assert float(values(two)['Last heartbeat age (s)']) < 1.0
+    nine = recorder.wait_for('cbcan: node 9', ERROR)
+    assert nine.message == 'expected but never heard', describe(nine)
+    bus = recorder.wait_for('cbcan: CAN bus', OK,
+                            where=lambda v: float(v['Frames received/s']) > 0)
+    assert bus.hardware_id == hardware
+    assert bus.message == 'up'
+    assert values(bus)['State'] == 'up'
+
+
+def test_error_frames_warn_and_a_bus_down_is_an_error(start_faulty):
+    harness, faults, recorder = start_faulty()
+    recorder.wait_for('cbcan: CAN bus', OK)
+    raw = harness.raw_bus()  # a plain virtual bus: its frames reach the gateway's adapter
+    try:
+        raw.send(can.Message(arbitration_id=CAN_ERR_CRTL, is_error_frame=True))
+    finally:
+        raw.shutdown()
+    warned = recorder.wait_for('cbcan: CAN bus', WARN)
+    assert warned.message.startswith('up; 1 error frame in the last'), describe(warned)
+    assert values(warned)['Error frames'] == '1'
+    recorder.wait_for('cbcan: CAN bus', OK)  # no new error frames: OK again
+
+    faults.fail_open('adapter gone')
+    faults.fail_receive('adapter unplugged')
+    down = recorder.wait_for('cbcan: CAN bus', ERROR)
+    assert 'adapter unplugged' in down.message, describe(down)
+    assert values(down)['State'] == 'down'
+    two = recorder.wait_for('cbcan: node 2', ERROR)
+    assert 'the CAN bus is down' in two.message, describe(two)
+
+    faults.clear()
+    up = recorder.wait_for('cbcan: CAN bus', OK, timeout=10.0)
+    assert values(up)['Reopen count'] == '1'
+    recorder.wait_for('cbcan: node 2', OK, timeout=10.0)
