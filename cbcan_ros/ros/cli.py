@@ -118,7 +118,7 @@ def _seconds(text: str) -> float:
     value = _parse_seconds(text)
     if not 0.0 <= value <= MAX_TIMEOUT:
         raise argparse.ArgumentTypeError(
-            f"timeout {text} is out of range: allowed 0 (the gateway's sdo.timeout) "
+            f"timeout {quoted(text)} is out of range: allowed 0 (the gateway's sdo.timeout) "
             f'to {MAX_TIMEOUT:g} s')
     return value
 
@@ -126,8 +126,16 @@ def _seconds(text: str) -> float:
 def _positive_seconds(text: str) -> float:
     value = _parse_seconds(text)
     if not value > 0.0:
-        raise argparse.ArgumentTypeError(f'{text} must be more than 0 s')
+        raise argparse.ArgumentTypeError(f'{quoted(text)} must be more than 0 s')
     return value
+
+
+def _type_name(text: str) -> str:
+    """Parse a value type name (u8 .. u64, i8 .. i64, f32, f64, str, hex)."""
+    if text.lower() not in VALUE_TYPES:
+        raise argparse.ArgumentTypeError(f'{quoted(text)} is not a value type: allowed '
+                                         f'{" ".join(VALUE_TYPES)}')
+    return text.lower()
 
 
 def _nmt_command(text: str) -> int:
@@ -547,7 +555,7 @@ def build_parser() -> argparse.ArgumentParser:
     read.add_argument('subindex', nargs='?', metavar='SUBINDEX',
                       help='sub-index (default 0), or the entry of a record or array named '
                            'by OBJECT: its sub-index or its name')
-    read.add_argument('--type', dest='value_type', choices=VALUE_TYPES, metavar='TYPE',
+    read.add_argument('--type', dest='value_type', type=_type_name, metavar='TYPE',
                       help=f'decode the answer as TYPE: {types} (default: the EDS type of a '
                            f'named object)')
     read.add_argument('--eds', metavar='FILE', help=eds_help)
@@ -573,7 +581,7 @@ def build_parser() -> argparse.ArgumentParser:
     write.add_argument('value', nargs='+', metavar='VALUE',
                        help='the value; several words are joined (hex: without spaces, '
                             'str: with one space)')
-    write.add_argument('--type', dest='value_type', choices=VALUE_TYPES, metavar='TYPE',
+    write.add_argument('--type', dest='value_type', type=_type_name, metavar='TYPE',
                        help=f'how to read VALUE: {types} (default: the EDS type of a named '
                             f'object, else hex)')
     write.add_argument('--eds', metavar='FILE', help=eds_help)
