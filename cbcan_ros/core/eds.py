@@ -23,10 +23,6 @@ SUGGESTIONS = 5
 DictionaryObject = Union[ODVariable, ODRecord, ODArray]
 
 
-class UnknownName(ValueError):
-    """No object of the dictionary has the name; the message lists close matches."""
-
-
 def load(path: str, node_id: Optional[int] = None) -> ObjectDictionary:
     """Parse an EDS or DCF file with canopen; raise ValueError saying what is wrong with it.
 
@@ -49,12 +45,12 @@ def load(path: str, node_id: Optional[int] = None) -> ObjectDictionary:
 def find(dictionary: ObjectDictionary, name: str, source: str = 'the EDS') -> DictionaryObject:
     """Return the object (or record/array entry, for "Object.Entry") called ``name``.
 
-    Raises UnknownName naming ``source`` (the file) and listing close matches.
+    Raises ValueError naming ``source`` (the file) and listing close matches.
     """
     names = _names(dictionary)
     if len(name.strip()) > max(map(len, names), default=0):
         # Longer than every name: nothing to look up (and an unbounded input costs nothing).
-        raise UnknownName(f'no object {quoted(name)} in {source}{_suggestions(name, names)}')
+        raise ValueError(f'no object {quoted(name)} in {source}{_suggestions(name, names)}')
     found = _top_level(dictionary, name)
     if found is not None:
         return found
@@ -62,16 +58,16 @@ def find(dictionary: ObjectDictionary, name: str, source: str = 'the EDS') -> Di
     for dot in (position for position, character in enumerate(name) if character == '.'):
         parent = _top_level(dictionary, name[:dot])
         if isinstance(parent, (ODRecord, ODArray)):
-            entry = _entry_by_name(parent, name[dot + 1:])
-            if entry is not None:
-                return entry
-    raise UnknownName(f'no object {quoted(name)} in {source}{_suggestions(name, names)}')
+            member = _entry_by_name(parent, name[dot + 1:])
+            if member is not None:
+                return member
+    raise ValueError(f'no object {quoted(name)} in {source}{_suggestions(name, names)}')
 
 
 def entry(parent: Union[ODRecord, ODArray], sub: str) -> ODVariable:
     """Return the entry of a record or array named ``sub``: its sub-index or its name.
 
-    Raises ValueError (UnknownName for names, listing close matches).
+    Raises ValueError; for an unknown name it lists close matches.
     """
     try:
         subindex = parse_integer(sub)
@@ -79,7 +75,7 @@ def entry(parent: Union[ODRecord, ODArray], sub: str) -> ODVariable:
         found = _entry_by_name(parent, sub)
         if found is None:
             names = [variable.name for variable in _entries(parent)]
-            raise UnknownName(f'{parent.name!r} has no entry {quoted(sub)}'
+            raise ValueError(f'{parent.name!r} has no entry {quoted(sub)}'
                               f'{_suggestions(sub, names)}') from None
         return found
     if not 0 <= subindex <= 0xFF:

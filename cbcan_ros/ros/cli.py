@@ -360,7 +360,8 @@ def _value_type(args, target: Target) -> Optional[str]:
 
 def cmd_sdo_read(client: Client, args) -> int:
     """Read an object and print its bytes, and its value as its type or as a guess."""
-    target, extra = _target(client, args, [args.subindex] if args.subindex else [], False)
+    words = [args.subindex] if args.subindex is not None else []
+    target, extra = _target(client, args, words, False)
     if extra:
         raise UsageError(f'{target.variable.qualname!r} is one value (0x{target.index:04X}:'
                          f'{target.subindex:02X}): give no sub-index after its name')
