@@ -103,7 +103,7 @@ class NodeParameters:
             self._declare(device_file_parameter(node_id), '',
                           f'EDS or DCF file of node {node_id}; empty = none. Checked at '
                           f'start. Give an absolute path: cbcan_cli reads the same file to '
-                          f'name objects and decode values', read_only=True)
+                          f'name objects and decode values')
 
     def gateway_config(self) -> GatewayConfig:
         """Return the core's configuration; raise ValueError naming a wrong parameter."""
