@@ -15,6 +15,7 @@ import logging
 
 from ..core import abort_codes, nmt
 from ..core.sdo import MAX_NODE_ID
+from ..core.text import quoted
 
 LOGGER = logging.getLogger(__name__)
 
@@ -56,11 +57,6 @@ def bytes_from_words(words: list[int], size: int) -> bytes:
 def abort_words(code: int) -> Block:
     """Return an SDO abort code as two words, low word first."""
     return [code & WORD, code >> 16 & WORD]
-
-
-def _quoted(text: str, limit: int = 32) -> str:
-    """Return ``text`` quoted and cut to ``limit`` characters: never echo unbounded input."""
-    return repr(text[:limit]) + ('...' if len(text) > limit else '')
 
 
 def _object(node_id: int, index: int, subindex: int) -> str:
@@ -343,7 +339,7 @@ class Mailbox:
         name = block_format or DEFAULT_FORMAT
         translator_type = FORMATS.get(name)
         if translator_type is None:
-            return registers, (f'unknown format {_quoted(block_format)}: allowed "cbcan" '
+            return registers, (f'unknown format {quoted(block_format)}: allowed "cbcan" '
                                f'(Fatek FBs-CBCAN, {Cbcan.LENGTH} registers, the default '
                                f'when empty) or "me3can" (Mitsubishi ME3CAN1-L, '
                                f'{Me3can.LENGTH} registers)')

@@ -3,6 +3,10 @@
 Examples (the gateway started by ``make run`` is ``/can0/cbcan``)::
 
     cbcan_cli sdo-read 5 0x1000
+    cbcan_cli sdo-read 5 0x2003 --type i32
+    cbcan_cli sdo-read 5 "Producer heartbeat time"        # named in node 5's EDS
+    cbcan_cli sdo-read 5 "Identity object.Vendor-ID"
+    cbcan_cli sdo-write 5 "Producer heartbeat time" 1000   # typed by the EDS
     cbcan_cli sdo-write 5 0x2002 0 0x12345678 --type u32
     cbcan_cli sdo-write 5 0x2021 0 hello --type str
     cbcan_cli nmt 5 start
@@ -12,25 +16,46 @@ Examples (the gateway started by ``make run`` is ``/can0/cbcan``)::
     cbcan_cli sdo-batch r:5:0x1000 w:5:0x2002:0:78563412 r:3:0x1008
     cbcan_cli sdo-batch --file accesses.txt
 
+Objects are given by index (a number) or by the name the node's EDS or DCF file gives them.
+The file is the gateway's parameter ``node_<id>.eds`` (asked of the running gateway) or
+``--eds FILE``.
+
 Exit status: 0 on success, 1 when the gateway answered with an error (an SDO abort, a
-refused request), 2 when there is no usable gateway (not running, no answer) or the command
-line is wrong.
+refused request) or the answer does not fit the value type, 2 when there is no usable
+gateway (not running, no answer) or the command line is wrong (an unknown name, a value that
+does not fit its type).
 """
 
 import argparse
+from dataclasses import dataclass
 import math
-import struct
 import sys
 import time
-from typing import List, Optional, Sequence
+from typing import List, Optional, Sequence, Tuple
 
+from canopen.objectdictionary import ObjectDictionary, ODVariable
+from rcl_interfaces.srv import GetParameters
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import parameter_value_to_python
 
+from ..core import eds
+from ..core.gateway import own_dictionary
 from ..core.sdo import MAX_NODE_ID, MAX_TIMEOUT
+from ..core.text import quoted
+from ..core.values import (
+    data_type_name,
+    decode_value,
+    encode_value,
+    INTEGER_TYPES,
+    parse_integer,
+    type_of,
+    VALUE_TYPES,
+)
 from ..msg import NodeStates, SdoAccess
 from ..plc.mailbox import Cbcan, Me3can
 from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
+from .config import device_file_parameter
 from .interface import NODE_STATES_QOS, SERVICE_QOS
 
 DEFAULT_GATEWAY = '/can0/cbcan'
@@ -38,6 +63,8 @@ DEFAULT_WAIT = 5.0
 # Seconds an answer may take beyond the SDO timeout of the request (a segmented transfer of
 # a large object takes many SDO round trips, each with its own timeout).
 ANSWER_MARGIN = 30.0
+# Bytes of a written value echoed in the confirmation.
+SHOWN_BYTES = 16
 
 NMT_COMMANDS = {
     'start': NmtCommand.Request.START,
@@ -47,28 +74,20 @@ NMT_COMMANDS = {
     'reset-comm': NmtCommand.Request.RESET_COMMUNICATION,
 }
 
-INTEGER_TYPES = {
-    'u8': '<B', 'u16': '<H', 'u32': '<I',
-    'i8': '<b', 'i16': '<h', 'i32': '<i',
-}
-VALUE_TYPES = list(INTEGER_TYPES) + ['hex', 'str']
-
-
 class GatewayUnavailable(Exception):
     """No gateway answers: it is not running, not discovered, or did not reply in time."""
+
+
+class UsageError(Exception):
+    """The command line cannot be carried out: an unknown name, a value that does not fit."""
 
 
 def _integer(text: str) -> int:
     """Parse a number: decimal, or with a 0x/0o/0b prefix (as ``int(text, 0)``)."""
     try:
-        return int(text, 0)
-    except ValueError:
-        pass
-    try:
-        return int(text, 10)  # '010': decimal with a leading zero, which int(x, 0) refuses
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f'{text!r} is not a number (decimal, or hex as 0x1A2B)') from None
+        return parse_integer(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def _ranged(name: str, lowest: int, highest: int, hex_digits: int = 0):
@@ -88,9 +107,9 @@ def _parse_seconds(text: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a number of seconds') from None
+        raise argparse.ArgumentTypeError(f'{quoted(text)} is not a number of seconds') from None
     if math.isnan(value):
-        raise argparse.ArgumentTypeError(f'{text!r} is not a number of seconds')
+        raise argparse.ArgumentTypeError(f'{quoted(text)} is not a number of seconds')
     return value
 
 
@@ -99,7 +118,7 @@ def _seconds(text: str) -> float:
     value = _parse_seconds(text)
     if not 0.0 <= value <= MAX_TIMEOUT:
         raise argparse.ArgumentTypeError(
-            f"timeout {text} is out of range: allowed 0 (the gateway's sdo.timeout) "
+            f"timeout {quoted(text)} is out of range: allowed 0 (the gateway's sdo.timeout) "
             f'to {MAX_TIMEOUT:g} s')
     return value
 
@@ -107,8 +126,16 @@ def _seconds(text: str) -> float:
 def _positive_seconds(text: str) -> float:
     value = _parse_seconds(text)
     if not value > 0.0:
-        raise argparse.ArgumentTypeError(f'{text} must be more than 0 s')
+        raise argparse.ArgumentTypeError(f'{quoted(text)} must be more than 0 s')
     return value
+
+
+def _type_name(text: str) -> str:
+    """Parse a value type name (u8 .. u64, i8 .. i64, f32, f64, str, hex)."""
+    if text.lower() not in VALUE_TYPES:
+        raise argparse.ArgumentTypeError(f'{quoted(text)} is not a value type: allowed '
+                                         f'{" ".join(VALUE_TYPES)}')
+    return text.lower()
 
 
 def _nmt_command(text: str) -> int:
@@ -120,7 +147,7 @@ def _nmt_command(text: str) -> int:
         value = _integer(text)
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(
-            f'{text!r} is not an NMT command: use {", ".join(NMT_COMMANDS)} or a number'
+            f'{quoted(text)} is not an NMT command: use {", ".join(NMT_COMMANDS)} or a number'
         ) from None
     if not 0 <= value <= 255:
         raise argparse.ArgumentTypeError(f'NMT command {text} is out of range: allowed 0..255')
@@ -133,56 +160,36 @@ _subindex = _ranged('subindex', 0, 0xFF, 2)
 _word = _ranged('word', 0, 0xFFFF, 4)
 
 
-def encode_value(words: Sequence[str], value_type: str) -> bytes:
-    """Turn the VALUE words of sdo-write into the bytes to write (little-endian numbers).
-
-    Raises ValueError with a message for the user when the value does not fit the type.
-    """
-    if value_type == 'str':
-        data = ' '.join(words).encode('utf-8')
-    elif value_type == 'hex':
-        digits = ''.join(words).replace(':', '').replace(',', '').replace(' ', '')
-        if digits.lower().startswith('0x'):
-            raise ValueError(
-                f'{" ".join(words)!r}: --type hex takes the bytes as on the bus, e.g. '
-                f'78563412 or "78 56 34 12"; for a number give --type u32 (or u8, u16, i32...)')
-        try:
-            data = bytes.fromhex(digits)
-        except ValueError:
-            raise ValueError(f'{" ".join(words)!r} is not hex bytes (e.g. 78563412 or '
-                             f'"78 56 34 12")') from None
-    else:
-        if len(words) != 1:
-            raise ValueError(f'--type {value_type} takes one number, got {len(words)} words')
-        try:
-            number = _integer(words[0])
-        except argparse.ArgumentTypeError as error:
-            raise ValueError(str(error)) from None
-        code = INTEGER_TYPES[value_type]
-        try:
-            data = struct.pack(code, number)
-        except struct.error:
-            bits = struct.calcsize(code) * 8
-            if value_type.startswith('u'):
-                allowed = f'0..{(1 << bits) - 1}'
-            else:
-                allowed = f'{-(1 << (bits - 1))}..{(1 << (bits - 1)) - 1}'
-            raise ValueError(f'{words[0]} does not fit {value_type}: allowed {allowed}') from None
-    if not data:
-        raise ValueError('the value is empty: write at least 1 byte')
-    return data
+def _data_line(data: bytes) -> str:
+    size = len(data)
+    hex_bytes = ' '.join(f'{byte:02X}' for byte in data) if data else '(none)'
+    return f'data:  {hex_bytes}  ({size} byte{"" if size == 1 else "s"})'
 
 
 def describe_data(data: bytes) -> List[str]:
-    """Return the lines sdo-read prints for ``data``: hex bytes, number, text."""
+    """Return the lines sdo-read prints for ``data`` of no known type: hex, number, text."""
     size = len(data)
-    hex_bytes = ' '.join(f'{byte:02X}' for byte in data) if data else '(none)'
-    lines = [f'data:  {hex_bytes}  ({size} byte{"" if size == 1 else "s"})']
+    lines = [_data_line(data)]
     if size in (1, 2, 4):
         value = int.from_bytes(data, 'little')
         lines.append(f'value: 0x{value:0{size * 2}X} = {value}  (unsigned, little-endian)')
     if data and all(0x20 <= byte <= 0x7E for byte in data):
         lines.append(f'text:  {data.decode("ascii")!r}')
+    return lines
+
+
+def describe_typed(data: bytes, value_type: str) -> List[str]:
+    """Return the lines sdo-read prints for ``data`` read as ``value_type``.
+
+    Raises ValueError naming the type and the size when ``data`` does not fit the type.
+    """
+    value = decode_value(data, value_type)
+    lines = [_data_line(data)]
+    if value_type in INTEGER_TYPES:
+        bits = int.from_bytes(data, 'little')
+        lines.append(f'value: {value}  ({value_type}, 0x{bits:0{len(data) * 2}X})')
+    elif value_type != 'hex':  # hex: the data line is the value
+        lines.append(f'value: {value!r}  ({value_type})')
     return lines
 
 
@@ -226,6 +233,12 @@ class Client:
                 f'{self.gateway}/{service} did not answer within {answer_within:g} s')
         return future.result()
 
+    def parameter(self, name: str):
+        """Return the value of the gateway's parameter ``name``; None if it has none."""
+        response = self.call(GetParameters, 'get_parameters', GetParameters.Request(
+            names=[name]), self.wait)
+        return parameter_value_to_python(response.values[0]) if response.values else None
+
     def receive_states(self):
         """Return one NodeStates message from the latched ``node_states`` topic."""
         received = []
@@ -256,30 +269,142 @@ def _failed(response) -> int:
     return 1
 
 
-def _object(args) -> str:
-    return f'node {args.node} object 0x{args.index:04X}:{args.subindex:02X}'
+@dataclass(frozen=True)
+class Target:
+    """The object a command names; ``variable`` is its EDS entry when it was named by name."""
+
+    node: int
+    index: int
+    subindex: int
+    variable: Optional[ODVariable] = None
+
+    def __str__(self) -> str:
+        where = f'node {self.node} object 0x{self.index:04X}:{self.subindex:02X}'
+        return f'{where} ({self.variable.qualname})' if self.variable else where
+
+
+def _dictionary(client: Client, args) -> Tuple[ObjectDictionary, str]:
+    """Return the dictionary that names the objects of ``args.node``, and where it is from."""
+    if args.eds:
+        try:
+            return eds.load(args.eds, args.node), quoted(args.eds, eds.PATH_LIMIT)
+        except ValueError as error:
+            raise UsageError(f'--eds {error}') from None
+    if args.node == 0:
+        return own_dictionary().object_dictionary, "the gateway's own dictionary"
+    name = device_file_parameter(args.node)
+    path = client.parameter(name)
+    if path is None:
+        raise UsageError(f'the gateway {client.gateway} has no parameter {name}: list node '
+                         f'{args.node} in its nodes (or node_guarding) parameter and set {name} '
+                         f'to its EDS, or give --eds FILE')
+    if not path:
+        raise UsageError(f"node {args.node} has no EDS: the gateway's parameter {name} is "
+                         f'empty; set it, or give --eds FILE')
+    try:
+        return eds.load(path, args.node), quoted(path, eds.PATH_LIMIT)
+    except ValueError as error:
+        raise UsageError(f"the gateway's parameter {name}: {error} (this command reads the "
+                         f'file on this machine; give --eds FILE if it is elsewhere)') from None
+
+
+def _target(client: Client, args, words: List[str], value_follows: bool
+            ) -> Tuple[Target, List[str]]:
+    """Resolve OBJECT and the words after it; return the target and the words left over.
+
+    OBJECT is an index, followed by its sub-index (optional for reads), or a name from the
+    node's EDS: of one value, or of a record or array followed by the entry's name or
+    sub-index.
+    """
+    try:
+        index = parse_integer(args.object)
+    except ValueError:
+        return _named(client, args, words)
+    if not 0 <= index <= 0xFFFF:
+        raise UsageError(f'index {quoted(args.object)} is out of range: allowed '
+                         f'0x0000..0xFFFF')
+    if value_follows and len(words) < 2:
+        raise UsageError('an object given by index takes SUBINDEX and VALUE, e.g. '
+                         'sdo-write 5 0x2002 0 78563412')
+    try:
+        subindex = parse_integer(words[0]) if words else 0
+    except ValueError as error:
+        raise UsageError(f'sub-index: {error}') from None
+    if not 0 <= subindex <= 0xFF:
+        raise UsageError(f'sub-index {quoted(words[0])} is out of range: allowed 0..255')
+    return Target(args.node, index, subindex), words[1:]
+
+
+def _named(client: Client, args, words: List[str]) -> Tuple[Target, List[str]]:
+    dictionary, source = _dictionary(client, args)
+    try:
+        found = eds.find(dictionary, args.object, source)
+        if isinstance(found, ODVariable):
+            return Target(args.node, found.index, found.subindex, found), words
+        if not words:
+            raise UsageError(f'{found.name!r} has several entries: name one as '
+                             f'"{found.name}.ENTRY" or give its sub-index after the name '
+                             f'({eds.describe_entries(found)})')
+        variable = eds.entry(found, words[0])
+    except ValueError as error:
+        raise UsageError(str(error)) from None
+    return Target(args.node, variable.index, variable.subindex, variable), words[1:]
+
+
+def _value_type(args, target: Target) -> Optional[str]:
+    """Return --type, or else the type of the object's EDS entry (None: not known)."""
+    if args.value_type:
+        return args.value_type
+    return type_of(target.variable.data_type) if target.variable else None
 
 
 def cmd_sdo_read(client: Client, args) -> int:
-    """Read an object and print its bytes, number and text."""
+    """Read an object and print its bytes, and its value as its type or as a guess."""
+    words = [args.subindex] if args.subindex is not None else []
+    target, extra = _target(client, args, words, False)
+    if extra:
+        raise UsageError(f'{target.variable.qualname!r} is one value (0x{target.index:04X}:'
+                         f'{target.subindex:02X}): give no sub-index after its name')
     response = client.call(SdoRead, 'sdo_read', SdoRead.Request(
-        node_id=args.node, index=args.index, subindex=args.subindex,
+        node_id=target.node, index=target.index, subindex=target.subindex,
         max_size=args.max_size, timeout=args.timeout), _answer_within(args.timeout))
     if not response.success:
         return _failed(response)
-    print('\n'.join(describe_data(bytes(response.data))))
+    data = bytes(response.data)
+    value_type = _value_type(args, target)
+    if target.variable:
+        print(f'object: {target.variable.qualname} = 0x{target.index:04X}:'
+              f'{target.subindex:02X}, {data_type_name(target.variable.data_type)}')
+    if value_type is None:
+        print('\n'.join(describe_data(data)))
+        return 0
+    try:
+        print('\n'.join(describe_typed(data, value_type)))
+    except ValueError as error:
+        print(_data_line(data))
+        origin = '--type' if args.value_type else 'the EDS'
+        print(f'error: {target}: {error} (type from {origin})', file=sys.stderr)
+        return 1
     return 0
 
 
 def cmd_sdo_write(client: Client, args) -> int:
     """Write an object."""
+    words = ([args.subindex] if args.subindex is not None else []) + args.value
+    target, value = _target(client, args, words, True)
+    if not value:
+        raise UsageError(f'no VALUE to write to {target}')
+    try:
+        data = encode_value(value, _value_type(args, target) or 'hex')
+    except ValueError as error:
+        raise UsageError(f'{target}: {error}') from None
     response = client.call(SdoWrite, 'sdo_write', SdoWrite.Request(
-        node_id=args.node, index=args.index, subindex=args.subindex,
-        data=list(args.data), timeout=args.timeout), _answer_within(args.timeout))
+        node_id=target.node, index=target.index, subindex=target.subindex,
+        data=list(data), timeout=args.timeout), _answer_within(args.timeout))
     if not response.success:
         return _failed(response)
-    print(f'ok: wrote {len(args.data)} byte{"" if len(args.data) == 1 else "s"} '
-          f'({args.data.hex(" ").upper()}) to {_object(args)}')
+    shown = data[:SHOWN_BYTES].hex(' ').upper() + (' ...' if len(data) > SHOWN_BYTES else '')
+    print(f'ok: wrote {len(data)} byte{"" if len(data) == 1 else "s"} ({shown}) to {target}')
     return 0
 
 
@@ -293,7 +418,7 @@ def parse_access(text: str) -> SdoAccess:
     kind = fields[0].lower()
     if kind not in ('r', 'w') or not 3 <= len(fields) <= (4 if kind == 'r' else 5) or (
             kind == 'w' and len(fields) != 5):
-        raise argparse.ArgumentTypeError(f'access {text[:40]!r}: expected {ACCESS_FORMAT}')
+        raise argparse.ArgumentTypeError(f'access {quoted(text)}: expected {ACCESS_FORMAT}')
     access = SdoAccess(node_id=_node(fields[1]), index=_index(fields[2]),
                        subindex=_subindex(fields[3]) if len(fields) > 3 else 0,
                        write=kind == 'w')
@@ -301,7 +426,7 @@ def parse_access(text: str) -> SdoAccess:
         try:
             access.data = list(encode_value([fields[4]], 'hex'))
         except ValueError as error:
-            raise argparse.ArgumentTypeError(f'access {text[:40]!r}: {error}') from None
+            raise argparse.ArgumentTypeError(f'access {quoted(text)}: {error}') from None
     return access
 
 
@@ -415,14 +540,26 @@ def build_parser() -> argparse.ArgumentParser:
                              '%(default)g)')
     commands = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
 
+    object_help = ('object index (e.g. 0x1017) or its name in the EDS (e.g. "Producer '
+                   'heartbeat time", "Identity object.Vendor-ID"; any case)')
+    eds_help = ("EDS or DCF file naming the node's objects (default: the file in the "
+                "gateway's parameter node_<NODE>.eds, asked when OBJECT is a name)")
+    types = ' '.join(VALUE_TYPES)
+
     read = commands.add_parser('sdo-read', help='read an object (SDO upload)',
-                               description='Read an object and print its bytes; 1, 2 and '
-                                           '4 bytes also as an unsigned little-endian '
-                                           'number, printable ASCII also as text.')
+                               description='Read an object and print its bytes and its value: '
+                                           'as --type, as its EDS type when named by name, '
+                                           'or else 1, 2 and 4 bytes as an unsigned '
+                                           'little-endian number and printable ASCII as text.')
     read.add_argument('node', type=_node, metavar='NODE', help='node id 1..127 (0 = gateway)')
-    read.add_argument('index', type=_index, metavar='INDEX', help='object index, e.g. 0x1000')
-    read.add_argument('subindex', type=_subindex, nargs='?', default=0, metavar='SUBINDEX',
-                      help='sub-index (default 0)')
+    read.add_argument('object', metavar='OBJECT', help=object_help)
+    read.add_argument('subindex', nargs='?', metavar='SUBINDEX',
+                      help='sub-index (default 0), or the entry of a record or array named '
+                           'by OBJECT: its sub-index or its name')
+    read.add_argument('--type', dest='value_type', type=_type_name, metavar='TYPE',
+                      help=f'decode the answer as TYPE: {types} (default: the EDS type of a '
+                           f'named object)')
+    read.add_argument('--eds', metavar='FILE', help=eds_help)
     read.add_argument('--max-size', type=_ranged('max-size', 0, 0xFFFFFFFF), default=0,
                       metavar='N', help='largest answer accepted in bytes (default 0: no '
                                         'limit)')
@@ -431,17 +568,24 @@ def build_parser() -> argparse.ArgumentParser:
     read.set_defaults(run=cmd_sdo_read)
 
     write = commands.add_parser('sdo-write', help='write an object (SDO download)',
-                                description='Write an object. The value is hex bytes as on '
-                                            'the bus by default (78563412 or "78 56 34 12"); '
-                                            'numbers are written little-endian.')
+                                description='Write an object. An object given by index takes '
+                                            'SUBINDEX, and its value is hex bytes as on the '
+                                            'bus unless --type says otherwise (78563412 or '
+                                            '"78 56 34 12"); an object named by name is '
+                                            'written as its EDS type. Numbers are written '
+                                            'little-endian.')
     write.add_argument('node', type=_node, metavar='NODE', help='node id 1..127 (0 = gateway)')
-    write.add_argument('index', type=_index, metavar='INDEX', help='object index, e.g. 0x2002')
-    write.add_argument('subindex', type=_subindex, metavar='SUBINDEX', help='sub-index')
+    write.add_argument('object', metavar='OBJECT', help=object_help)
+    write.add_argument('subindex', nargs='?', metavar='SUBINDEX',
+                       help='sub-index: required after an index; after a name only for the '
+                            'entry of a record or array (its sub-index or name)')
     write.add_argument('value', nargs='+', metavar='VALUE',
                        help='the value; several words are joined (hex: without spaces, '
                             'str: with one space)')
-    write.add_argument('--type', dest='value_type', choices=VALUE_TYPES, default='hex',
-                       help='how to read VALUE (default hex)')
+    write.add_argument('--type', dest='value_type', type=_type_name, metavar='TYPE',
+                       help=f'how to read VALUE: {types} (default: the EDS type of a named '
+                            f'object, else hex)')
+    write.add_argument('--eds', metavar='FILE', help=eds_help)
     write.add_argument('--timeout', type=_seconds, default=0.0, metavar='S',
                        help="SDO timeout in seconds (default 0: the gateway's sdo.timeout)")
     write.set_defaults(run=cmd_sdo_write)
@@ -493,23 +637,22 @@ def _gateway_name(name: str) -> str:
     return name if name.startswith('/') else f'/{name}'
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Run one command of ``cbcan_cli``; return the exit status."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.command == 'sdo-write':
-        try:
-            args.data = encode_value(args.value, args.value_type)
-        except ValueError as error:
-            parser.error(f'sdo-write: {error}')
-    args.gateway = _gateway_name(args.gateway)
-    client = None
+def run(client: Client, args: argparse.Namespace) -> int:
+    """Run one parsed command through ``client`` (several may share one); return the status."""
     try:
-        client = Client(args.gateway, args.wait)
         return args.run(client, args)
-    except GatewayUnavailable as error:
+    except (GatewayUnavailable, UsageError) as error:
         print(f'error: {error}', file=sys.stderr)
         return 2
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Run one command of ``cbcan_cli``; return the exit status."""
+    args = build_parser().parse_args(argv)
+    client = None
+    try:
+        client = Client(_gateway_name(args.gateway), args.wait)
+        return run(client, args)
     except KeyboardInterrupt:
         return 130
     finally:

@@ -14,8 +14,15 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from ..core import eds
 from ..core.gateway import GatewayConfig
+from ..core.text import quoted
 from ..core.write_protection import RULE_FORMAT, WriteProtection
+
+
+def device_file_parameter(node_id: int) -> str:
+    """Return the name of the parameter holding the EDS or DCF file of ``node_id``."""
+    return f'node_{node_id}.eds'
 
 
 class NodeParameters:
@@ -97,13 +104,19 @@ class NodeParameters:
                       'trying the gateway without hardware; empty on a real bus')
         self._declare('simulation.eds', '',
                       'EDS file of the simulated devices; empty = the one shipped in config/')
+        for node_id in self._listed_devices():
+            self._declare(device_file_parameter(node_id), '',
+                          f'EDS or DCF file of node {node_id}; empty = none. Checked at '
+                          f'start. Give an absolute path: cbcan_cli reads the same file to '
+                          f'name objects and decode values')
 
     def gateway_config(self) -> GatewayConfig:
         """Return the core's configuration; raise ValueError naming a wrong parameter."""
+        self.check_device_files()  # the core does not use them; a bad one stops the node here
         value = self.value
         interface = value('can.interface')
         if interface not in can.interfaces.BACKENDS:
-            raise ValueError(f'parameter can.interface: {interface[:40]!r} is not a python-can '
+            raise ValueError(f'parameter can.interface: {quoted(interface)} is not a python-can '
                              f'interface: allowed {", ".join(sorted(can.interfaces.BACKENDS))}')
         return GatewayConfig(
             interface=interface,
@@ -129,7 +142,7 @@ class NodeParameters:
         for option in self._strings('can.options'):
             key, equals, text = option.partition('=')
             if not equals or not key.strip():
-                raise ValueError(f'parameter can.options: {option!r} is not key=value')
+                raise ValueError(f'parameter can.options: {quoted(option)} is not key=value')
             try:
                 options[key.strip()] = json.loads(text)
             except ValueError:
@@ -148,6 +161,27 @@ class NodeParameters:
         if wrong:
             raise ValueError(f'parameter {name}: node ids {wrong} are out of range 1..127')
         return node_ids
+
+    def _listed_devices(self) -> List[int]:
+        listed = set()
+        for name in ('nodes', 'node_guarding'):
+            listed.update(self._node.get_parameter_or(name, Parameter(name, value=[])).value
+                          or [])
+        return sorted(node_id for node_id in listed if 1 <= node_id <= 127)
+
+    def check_device_files(self) -> None:
+        """Check that every EDS or DCF file given exists and canopen can parse it.
+
+        Raises ValueError naming the parameter and the file.
+        """
+        for node_id in self._listed_devices():
+            name = device_file_parameter(node_id)
+            path = self.value(name)
+            if path:
+                try:
+                    eds.load(path, node_id)
+                except ValueError as error:
+                    raise ValueError(f'parameter {name}: {error}') from None
 
     def simulation_eds(self) -> str:
         """Return the EDS file of the simulated devices."""
