@@ -88,6 +88,8 @@ def declare(node: Node, name: str, default, descriptor: ParameterDescriptor) -> 
     integer given for a floating-point parameter (``timeout: 2``) is taken as that number:
     rclpy alone refuses it.
     """
+    if not isinstance(default, Parameter.Type):
+        descriptor.type = Parameter.Type.from_parameter_value(default).value
     try:
         return node.declare_parameter(name, default, descriptor)
     except (InvalidParameterTypeException, InvalidParameterValueException):
@@ -130,8 +132,8 @@ def check_unknown(node: Node, declared: Iterable[str]) -> None:
         if group not in groups and not close:
             continue
         candidates = close or [known for known in declared if known.startswith(group)]
-        hint = ' (a list of key=value strings, not a map)' if group == 'can.' and \
-            name.startswith('can.options.') else ''
+        hint = (' (a list of key=value strings, not a map)'
+                if name.startswith('can.options.') else '')
         raise ConfigurationError(name, overrides[name].value,
                                  f'is given, but {node.get_name()} has no such parameter',
                                  ', '.join(candidates) + hint)
