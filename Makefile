@@ -22,7 +22,7 @@ BUILD_INPUTS := $(ROOT)/package.xml $(ROOT)/CMakeLists.txt \
   $(shell cd $(ROOT) && find srv_defs cbcan_ros scripts config launch \
       -name __pycache__ -prune -o -print 2>/dev/null)
 
-.PHONY: venv build test run cli bench clean distclean
+.PHONY: venv build test colcon-smoke run cli bench clean distclean
 
 venv: $(VENV_STAMP)
 
@@ -58,6 +58,11 @@ $(BUILD_STAMP): $(VENV_STAMP) $(BUILD_INPUTS)
 # the installed package.
 test: build
 	$(ROS_ENV) pytest -q $(ROOT)/test $(ARGS)
+
+# The repository built as a ROS user would (a fresh workspace, a plain `colcon build`), and
+# the node run from that install: tools/colcon-smoke.
+colcon-smoke: venv
+	$(ROOT)/tools/colcon-smoke
 
 run: build
 	$(ROS_ENV) cbcan_node --ros-args -r __ns:=/can0 --params-file $(ROOT)/config/simulation.yaml $(ARGS)

@@ -1,6 +1,12 @@
 """Text for messages: input is echoed back cut short, never whole."""
 
 
-def quoted(text: str, limit: int = 32) -> str:
-    """Return ``text`` quoted and cut to ``limit`` characters: never echo unbounded input."""
-    return repr(text[:limit]) + ('...' if len(text) > limit else '')
+def quoted(value, limit: int = 32) -> str:
+    """Return ``value`` as a message shows it (its repr) cut to ``limit``: never echo it whole.
+
+    A string is cut before quoting, so the quotes stay and ``...`` says it went on.
+    """
+    if isinstance(value, str):
+        return repr(value[:limit]) + ('...' if len(value) > limit else '')
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + '...'

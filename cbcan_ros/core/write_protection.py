@@ -5,7 +5,7 @@ stored to the application because of local control") and never reaches the bus.
 """
 
 from dataclasses import dataclass
-from typing import Iterable, Optional, Tuple
+from typing import Optional, Tuple
 
 from .sdo import MAX_NODE_ID
 
@@ -27,7 +27,7 @@ class WriteRule:
 
 
 def parse_rule(text: str) -> WriteRule:
-    """Parse one rule; raise ValueError naming the rule and the expected form."""
+    """Parse one rule; raise ValueError saying what is wrong (the caller names the rule)."""
     try:
         node_text, _, range_text = text.strip().partition(':')
         node_id = None if node_text.strip() == '*' else int(node_text, 0)
@@ -35,12 +35,11 @@ def parse_rule(text: str) -> WriteRule:
         first = int(first_text, 0)
         last = int(last_text, 0) if dash else first
     except ValueError:
-        raise ValueError(f'write rule {text!r} is not of the form {RULE_FORMAT}') from None
+        raise ValueError('not of the form node:index or node:first-last') from None
     if node_id is not None and not 0 <= node_id <= MAX_NODE_ID:
-        raise ValueError(f'write rule {text!r}: node {node_id} is out of range 0..127')
+        raise ValueError(f'node {node_id} is out of range 0..127')
     if not 0 <= first <= last <= 0xFFFF:
-        raise ValueError(f'write rule {text!r}: index range must be within 0x0000..0xFFFF, '
-                         f'first <= last')
+        raise ValueError('index range must be within 0x0000..0xFFFF, first <= last')
     return WriteRule(node_id, first, last)
 
 
@@ -54,11 +53,6 @@ class WriteProtection:
 
     read_only: bool = False
     rules: Tuple[WriteRule, ...] = ()
-
-    @classmethod
-    def from_settings(cls, read_only: bool, rules: Iterable[str]) -> 'WriteProtection':
-        """Build from the parameters ``read_only`` and ``sdo.write_allow``."""
-        return cls(read_only, tuple(parse_rule(rule) for rule in rules if rule.strip()))
 
     def refuses_write(self, node_id: int, index: int) -> Optional[str]:
         """Return why writing ``index`` of ``node_id`` is refused, or None."""

@@ -1,23 +1,21 @@
 """The node's ROS parameters: declared with descriptors, checked, turned into the core's config.
 
 Every parameter is declared here with its description and range, so ``ros2 param describe``
-tells a robotics engineer what it means; a wrong value stops the node at start with a message
-naming the parameter.
+tells a robotics engineer what it means; a wrong value stops the node at start with one
+message naming the parameter, the value and what is allowed (``parameter_checks.py``).
 """
 
-import json
 import os
-from typing import Dict, List
+from typing import List
 
-import can
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from ..core import eds
 from ..core.gateway import GatewayConfig
-from ..core.text import quoted
 from ..core.write_protection import RULE_FORMAT, WriteProtection
+from . import parameter_checks as checks
 
 
 def device_file_parameter(node_id: int) -> str:
@@ -30,13 +28,17 @@ class NodeParameters:
 
     def __init__(self, node: Node):
         self._node = node
+        self._declared: List[str] = []
+        self.warnings: List[str] = []  # doubtful values, logged by gateway_config()
         self._declare_all()
 
     def _declare(self, name: str, value, description: str, **ranges) -> Parameter:
+        """Declare a parameter; raise ConfigurationError if the value given for it is wrong."""
         descriptor = ParameterDescriptor(description=description, **ranges)
         if isinstance(value, Parameter.Type):
             descriptor.type = value.value
-        return self._node.declare_parameter(name, value, descriptor)
+        self._declared.append(name)
+        return checks.declare(self._node, name, value, descriptor)
 
     def _declare_all(self) -> None:
         self._declare('can.interface', 'virtual',
@@ -57,7 +59,8 @@ class NodeParameters:
         self._declare('can.options', Parameter.Type.STRING_ARRAY,
                       'Further python-can bus options as key=value, passed to the interface '
                       'as they are (values parsed as JSON when they can be), e.g. '
-                      '["sleep_after_open=0", "tty_baudrate=115200"] for slcan')
+                      '["sleep_after_open=0", "tty_baudrate=115200"] for slcan',
+                      additional_constraints='each key=value')
         self._declare('sdo.queue_limit', 64,
                       'Requests that may wait for one device; a request beyond this is '
                       'answered at once as busy (abort 0x060A0023), nothing is sent',
@@ -72,20 +75,23 @@ class NodeParameters:
                       'is sent')
         self._declare('sdo.write_allow', Parameter.Type.STRING_ARRAY,
                       f'Objects that SDO writes may reach, each {RULE_FORMAT}; empty = all. '
-                      'Other writes are refused with abort 0x08000021 and never sent')
+                      'Other writes are refused with abort 0x08000021 and never sent',
+                      additional_constraints=f'each {RULE_FORMAT}')
         self._declare('sdo.block_transfer', False,
                       'Try SDO block transfer first; devices that refuse it get segmented '
                       'transfers')
         self._declare('nodes', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) the gateway expects; they are listed as '
-                      'NOT_DETECTED until they send a heartbeat')
+                      'NOT_DETECTED until they send a heartbeat',
+                      additional_constraints=checks.NODE_IDS)
         self._declare('heartbeat.timeout', 3.0,
                       'Seconds without heartbeat, boot-up or guarding reply after which a '
                       'node is NOT_DETECTED',
                       floating_point_range=[FloatingPointRange(
                           from_value=0.01, to_value=3600.0, step=0.0)])
         self._declare('node_guarding', Parameter.Type.INTEGER_ARRAY,
-                      'Node ids (1..127) without heartbeat producer to poll by node guarding')
+                      'Node ids (1..127) without heartbeat producer to poll by node guarding',
+                      additional_constraints=checks.NODE_IDS)
         self._declare('node_guarding_period', 1.0,
                       'Seconds between node guarding requests to each guarded node',
                       floating_point_range=[FloatingPointRange(
@@ -101,7 +107,8 @@ class NodeParameters:
                           from_value=0.01, to_value=3600.0, step=0.0)])
         self._declare('simulation.devices', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) of simulated CANopen devices to put on the bus, for '
-                      'trying the gateway without hardware; empty on a real bus')
+                      'trying the gateway without hardware; empty on a real bus',
+                      additional_constraints=checks.NODE_IDS)
         self._declare('simulation.eds', '',
                       'EDS file of the simulated devices; empty = the one shipped in config/')
         for node_id in self._listed_devices():
@@ -111,43 +118,46 @@ class NodeParameters:
                           f'name objects and decode values')
 
     def gateway_config(self) -> GatewayConfig:
-        """Return the core's configuration; raise ValueError naming a wrong parameter."""
-        self.check_device_files()  # the core does not use them; a bad one stops the node here
+        """Return the core's configuration; raise ConfigurationError naming a wrong parameter.
+
+        Checks every parameter, and how they fit together; doubtful values are logged as
+        warnings once.
+        """
         value = self.value
-        interface = value('can.interface')
-        if interface not in can.interfaces.BACKENDS:
-            raise ValueError(f'parameter can.interface: {quoted(interface)} is not a python-can '
-                             f'interface: allowed {", ".join(sorted(can.interfaces.BACKENDS))}')
+        checks.check_unknown(self._node, self._declared)
+        interface, channel = value('can.interface'), value('can.channel')
+        checks.check_interface(interface)
+        checks.check_channel(interface, channel)
+        bus_options = checks.bus_options(self._strings('can.options'))
+        expected, guarded = self.node_ids('nodes'), self.node_ids('node_guarding')
+        simulated = self.node_ids('simulation.devices')
+        checks.check_file('simulation.eds', value('simulation.eds'))
+        self.check_device_files()  # the core does not use them; a bad one stops the node here
+        self.warnings = [warning for warning in (
+            checks.check_bitrate(interface, value('can.bitrate')),
+            checks.check_guarding(guarded, expected, value('node_guarding_period'),
+                                  value('heartbeat.timeout')),
+            checks.simulation_warning(interface, channel, simulated)) if warning]
+        for warning in self.warnings:
+            self._node.get_logger().warning(warning)
         return GatewayConfig(
             interface=interface,
-            channel=value('can.channel'),
+            channel=channel,
             bitrate=value('can.bitrate'),
             sdo_timeout=value('sdo.timeout'),
             block_transfer=value('sdo.block_transfer'),
             heartbeat_timeout=value('heartbeat.timeout'),
-            expected_nodes=tuple(self.node_ids('nodes')),
-            guarded_nodes=tuple(self.node_ids('node_guarding')),
+            expected_nodes=tuple(expected),
+            guarded_nodes=tuple(guarded),
             guard_period=value('node_guarding_period'),
             queue_limit=value('sdo.queue_limit'),
             read_retries=value('sdo.read_retries'),
-            write_protection=WriteProtection.from_settings(
-                value('read_only'), self._strings('sdo.write_allow')),
-            bus_options=self._bus_options())
+            write_protection=WriteProtection(
+                value('read_only'), checks.write_rules(self._strings('sdo.write_allow'))),
+            bus_options=bus_options)
 
     def _strings(self, name: str) -> List[str]:
         return list(self._node.get_parameter_or(name, Parameter(name, value=[])).value or [])
-
-    def _bus_options(self) -> Dict[str, object]:
-        options = {}
-        for option in self._strings('can.options'):
-            key, equals, text = option.partition('=')
-            if not equals or not key.strip():
-                raise ValueError(f'parameter can.options: {quoted(option)} is not key=value')
-            try:
-                options[key.strip()] = json.loads(text)
-            except ValueError:
-                options[key.strip()] = text
-        return options
 
     def value(self, name: str):
         """Return the value of parameter ``name``."""
@@ -157,9 +167,7 @@ class NodeParameters:
         """Return the node ids of an integer-array parameter, checked to be 1..127."""
         parameter = self._node.get_parameter_or(name, Parameter(name, value=[]))
         node_ids = list(parameter.value or [])
-        wrong = [node_id for node_id in node_ids if not 1 <= node_id <= 127]
-        if wrong:
-            raise ValueError(f'parameter {name}: node ids {wrong} are out of range 1..127')
+        checks.check_node_ids(name, node_ids)
         return node_ids
 
     def _listed_devices(self) -> List[int]:
