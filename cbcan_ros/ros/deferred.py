@@ -23,6 +23,8 @@ import threading
 import time
 from typing import Callable, Coroutine, Dict, Optional, Tuple
 
+from rclpy.exceptions import InvalidHandle
+
 LOGGER = logging.getLogger(__name__)
 
 
@@ -80,7 +82,8 @@ class DeferredService:
         self._service.send_response = self._send_when_ready
 
     def destroy(self) -> None:
-        """Take the service away (its calls have been answered: see CallsInProgress)."""
+        """Answer the requests that arrived but were never taken, then take the service away."""
+        drain(self._service)
         self._node.destroy_service(self._service)
 
     def _take(self, request, response):
@@ -120,6 +123,25 @@ class DeferredService:
             self._calls.end()
 
 
+def drain(service) -> None:
+    """Hand each request still waiting in ``service`` (never taken) to its callback, once.
+
+    Called once the executor takes no more requests (shutdown) or is busy taking the service
+    away (cleanup): without it those callers would wait for ever. The request is taken as
+    rclpy's executors take it (``service.handle.service_take_request``).
+    """
+    while True:
+        try:
+            with service.handle:
+                request, header = service.handle.service_take_request(
+                    service.srv_type.Request)
+        except InvalidHandle:
+            return
+        if header is None:
+            return
+        service.send_response(service.callback(request, service.srv_type.Response()), header)
+
+
 class CoroutineRunner:
     """An asyncio event loop on a thread of its own, for calls that chain several steps.
 
@@ -148,6 +170,15 @@ class CoroutineRunner:
             if self._closed:
                 return
             self._closed = True
+
+        async def cancel_all() -> None:
+            tasks = asyncio.all_tasks() - {asyncio.current_task()}
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+        # Each cancelled coroutine still gives its answer (see its CancelledError handling).
+        asyncio.run_coroutine_threadsafe(cancel_all(), self._loop).result()
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join()
         self._loop.close()

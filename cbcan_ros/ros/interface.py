@@ -28,7 +28,7 @@ from ..msg import SdoResult as SdoResultMessage
 from ..plc.mailbox import Mailbox
 from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 from .config import NodeParameters
-from .deferred import CallsInProgress, CoroutineRunner, DeferredService
+from .deferred import CallsInProgress, CoroutineRunner, DeferredService, drain
 from .diagnostics import Diagnostics
 from .emcy import EmcyPublisher
 
@@ -108,18 +108,19 @@ class GatewayInterface:
     def __init__(self, node: Node, parameters: NodeParameters, active: bool = True):
         self._node = node
         self.active = active
+        self._shutting_down = False
         self._log_handler = _RosLogHandler(node.get_logger())
         core_logger = logging.getLogger(PACKAGE)
         core_logger.setLevel(logging.INFO)
         core_logger.addHandler(self._log_handler)
         try:
             self.gateway = Gateway(parameters.gateway_config())
+            self.simulated_devices = self._simulated_devices(parameters)
         except Exception:
             core_logger.removeHandler(self._log_handler)
             raise
         # Before the bus opens, so an EMCY a device sends as it boots is published too.
         self._emcy = EmcyPublisher(node, self.gateway, lambda: self.active)
-        self.simulated_devices = self._simulated_devices(parameters)
         self.gateway.start()
         for device in self.simulated_devices:
             device.start()
@@ -145,10 +146,17 @@ class GatewayInterface:
 
         self._states_publisher = node.create_publisher(NodeStates, '~/node_states',
                                                        NODE_STATES_QOS)
-        # A change is published from the thread that saw it (rclpy's EventsExecutor takes no
-        # guard conditions); the lock keeps an older picture from being published last.
+        # Changes are published by a thread of their own (rclpy's EventsExecutor takes no
+        # guard conditions): not by the bus thread, which a storm of changes (all nodes
+        # started at once) would hold up a publication each. One publication covers every
+        # change before it, and the lock keeps the timer's from overtaking a newer picture.
         self._states_lock = threading.Lock()
-        self.gateway.monitor.add_listener(self._publish_states)
+        self._states_changed = threading.Event()
+        self._states_closing = False
+        self._states_thread = threading.Thread(target=self._publish_changes,
+                                               name='node states', daemon=True)
+        self._states_thread.start()
+        self.gateway.monitor.add_listener(self._states_changed.set)
         self._diagnostics = Diagnostics(node, self.gateway)
         self._timers = [node.create_timer(parameters.value('state_publish_period'),
                                           self._publish_states),
@@ -185,6 +193,7 @@ class GatewayInterface:
         SDO and mailbox answers leave from the thread that resolves them; this waits up to
         ``ANSWER_GRACE`` seconds for all to leave.
         """
+        self._shutting_down = True
         self.gateway.stop()
         self._calls.wait_until_idle(ANSWER_GRACE)
         self._mailbox_loop.close()
@@ -198,7 +207,11 @@ class GatewayInterface:
         for deferred in self._deferred:
             deferred.destroy()
         for service in self._services:
+            drain(service)
             node.destroy_service(service)
+        self._states_closing = True
+        self._states_changed.set()
+        self._states_thread.join()
         for timer in self._timers:
             node.destroy_timer(timer)
         with self._states_lock:
@@ -232,8 +245,16 @@ class GatewayInterface:
         registers = list(request.registers)
         if not self.active:
             return resolved((registers, INACTIVE))
-        running = self._mailbox_loop.submit(self._mailbox.execute(request.format, registers))
+        running = self._mailbox_loop.submit(self._execute_mailbox(request.format, registers))
         return running or resolved((registers, SHUTTING_DOWN))
+
+    async def _execute_mailbox(self, block_format: str, registers: list):
+        if self._shutting_down:  # its turn came after shutdown began: it sent nothing
+            return registers, f'{SHUTTING_DOWN}; nothing was sent'
+        try:
+            return await self._mailbox.execute(block_format, registers)
+        except asyncio.CancelledError:  # shutdown ends the loop: answer, do not vanish
+            return registers, SHUTTING_DOWN
 
     def _on_nmt_command(self, request, response):
         if not self.active:
@@ -260,6 +281,14 @@ class GatewayInterface:
         response.state_name = status.state_name
         response.last_seen_age = status.last_seen_age
         return response
+
+    def _publish_changes(self) -> None:
+        while True:
+            self._states_changed.wait()
+            if self._states_closing:
+                return
+            self._states_changed.clear()
+            self._publish_states()
 
     def _publish_diagnostics(self) -> None:
         if self.active:

@@ -26,6 +26,22 @@ class CbcanLifecycleNode(LifecycleNode):
         super().__init__('cbcan', **kwargs)
         self._node_parameters = NodeParameters(self)
         self.interface = None
+        # rclpy's change_state raises for a transition the current state does not have
+        # (configure twice), which ends the executor and the node; rclcpp answers
+        # success false, and so does this.
+        self._rclpy_change_state = self._service_change_state.callback
+        self._service_change_state.callback = self._change_state
+
+    def _change_state(self, request, response):
+        transition = request.transition
+        available = {described[0] for described in self._state_machine.available_transitions}
+        if not transition.label and transition.id not in available:
+            self.get_logger().warning(
+                f'transition {transition.id} refused: state '
+                f'{self._state_machine.current_state[1]} has no such transition')
+            response.success = False
+            return response
+        return self._rclpy_change_state(request, response)
 
     @property
     def gateway(self):
@@ -36,7 +52,7 @@ class CbcanLifecycleNode(LifecycleNode):
         """Check the parameters, open the bus; services answer "inactive" until activate."""
         try:
             self.interface = GatewayInterface(self, self._node_parameters, active=False)
-        except ValueError as error:
+        except Exception as error:  # noqa: BLE001 - rclpy would swallow it without a word
             self.get_logger().error(f'cannot configure: {error}')
             return TransitionCallbackReturn.FAILURE
         return super().on_configure(state)

@@ -14,6 +14,7 @@ import threading
 from typing import Callable
 
 import rclpy
+from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -24,6 +25,14 @@ from .interface import ANSWER_GRACE, GatewayInterface
 # The longest an idle executor sleeps before it looks whether shutdown began (it is woken
 # at once anyway; this only bounds a missed wake-up).
 SPIN_CHECK = 1.0
+
+# How long shutdown waits for a spin in progress to end; a backlog of requests, each
+# answered "shutting down" at once, took about a second under load.
+SPIN_STOP = 5.0
+
+# Failures of the executor in a row after which the node gives up (exit status 1) rather
+# than spin in a loop of errors.
+EXECUTOR_FAILURES = 100
 
 
 def make_executor():
@@ -92,11 +101,25 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
 
     spinning = threading.Event()
     spinning.set()
+    broken = []
 
     def spin() -> None:
+        failures = 0
         try:
             while spinning.is_set():
-                executor.spin_once(timeout_sec=SPIN_CHECK)
+                try:
+                    executor.spin_once(timeout_sec=SPIN_CHECK)
+                    failures = 0
+                except ExternalShutdownException:
+                    return
+                except Exception as error:  # noqa: BLE001 - a bad callback must not end it
+                    failures += 1
+                    if failures == 1:
+                        node.get_logger().error(f'a callback failed, serving goes on: {error!r}')
+                    if failures >= EXECUTOR_FAILURES:
+                        broken.append(error)
+                        node.get_logger().fatal(f'the executor keeps failing: {error!r}')
+                        return
         finally:
             stop.set()
 
@@ -106,14 +129,16 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
     node.get_logger().info('shutting down: answering waiting calls')
     node.shut_down_gateway()
     # Executor.shutdown() does not wait for a spin in progress and destroys what that spin
-    # uses (rclpy 7.1.6): end the spinning first, then shut the executor down.
+    # uses (rclpy 7.1.6): end the spinning first (the gateway is stopped, so whatever it
+    # still takes is answered at once), then shut the executor down. Requests it never took
+    # are answered when the services go (deferred.drain).
     spinning.clear()
     executor.wake()
-    spinner.join(ANSWER_GRACE)
+    spinner.join(SPIN_STOP)
     executor.shutdown(timeout_sec=ANSWER_GRACE)
     node.destroy_node()
     rclpy.try_shutdown()
-    return 0
+    return 1 if broken else 0
 
 
 def main(args=None) -> int:
