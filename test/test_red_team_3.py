@@ -148,8 +148,11 @@ def test_signal_with_a_mailbox_backlog_answers_every_mailbox_call(start_node, cl
     exited = time.monotonic() - signalled
     output = gateway.output()
     assert 'Task was destroyed but it is pending' not in output, output[-3000:]
-    assert status == 0 and exited < 2.0, (status, exited, output[-3000:])
-    answered_within(calls, 3.0, 'mailbox calls after SIGINT', gateway)
+    # Every one of the 2,000 requests is taken and answered during shutdown: a second more
+    # than the 2 s of an ordinary shutdown, for a test suite sharing 2 cores between workers.
+    assert status == 0 and exited < 3.0, (status, exited, output[-3000:])
+    # The answers left the node before it exited; this client takes its time to read 2,000.
+    answered_within(calls, 10.0, 'mailbox calls after SIGINT', gateway)
 
 
 def test_second_signal_during_a_slow_shutdown_exits_at_once(start_node, client_node):
