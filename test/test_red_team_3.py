@@ -127,13 +127,11 @@ def test_signal_during_a_burst_answers_every_caller_and_sends_no_write_twice(
     assert len(writes) == len(set(writes)), 'a write went out twice'
 
 
-def test_signal_with_a_mailbox_backlog_answers_every_mailbox_call(start_node, client_node):
-    # 2,000 ME3CAN multi-reads of 8 blocks (the mailbox loop needs seconds for them), SIGINT
-    # at the first answer. A defect found by this pass: shutdown waits ANSWER_GRACE for the
-    # calls, then CoroutineRunner.close() stops the loop with mailbox tasks still on it.
-    # Their callers are never answered, the node prints one "Task was destroyed but it is
-    # pending!" (with a task dump) per lost call, and destroy_node then waits ANSWER_GRACE a
-    # second time for the calls that can no longer end: exit after about 3 s.
+def mailbox_backlog(start_node, client_node):
+    """Start a node and send it 2,000 ME3CAN multi-reads of 8 blocks; return at the first answer.
+
+    The mailbox loop needs seconds for them: a shutdown meets a long backlog.
+    """
     name = f'{namespace()}/cbcan'
     gateway = start_node(arguments(name, '-p', f'can.channel:={new_channel()}',
                                    '-p', f'simulation.devices:={list(LIVE)}'))
@@ -142,6 +140,17 @@ def test_signal_with_a_mailbox_backlog_answers_every_mailbox_call(start_node, cl
         format='me3can', registers=me3can_multi_read([LIVE[number % 2]] * 8)))
         for number in range(2000)]
     wait_until(lambda: any(call.done() for call in calls), 15.0, 'the first mailbox answer')
+    return gateway, calls
+
+
+def test_signal_with_a_mailbox_backlog_answers_every_mailbox_call(start_node, client_node):
+    # 2,000 ME3CAN multi-reads of 8 blocks (the mailbox loop needs seconds for them), SIGINT
+    # at the first answer. A defect found by this pass: shutdown waits ANSWER_GRACE for the
+    # calls, then CoroutineRunner.close() stops the loop with mailbox tasks still on it.
+    # Their callers are never answered, the node prints one "Task was destroyed but it is
+    # pending!" (with a task dump) per lost call, and destroy_node then waits ANSWER_GRACE a
+    # second time for the calls that can no longer end: exit after about 3 s.
+    gateway, calls = mailbox_backlog(start_node, client_node)
     signalled = time.monotonic()
     gateway.process.send_signal(signal.SIGINT)
     status = gateway.wait(5.0)
@@ -159,14 +168,7 @@ def test_second_signal_during_a_slow_shutdown_exits_at_once(start_node, client_n
     # The first SIGINT starts the orderly shutdown of a node with a mailbox backlog; the
     # impatient second one must end the process at once (status 128 + 2), whatever the
     # first is waiting for.
-    name = f'{namespace()}/cbcan'
-    gateway = start_node(arguments(name, '-p', f'can.channel:={new_channel()}',
-                                   '-p', f'simulation.devices:={list(LIVE)}'))
-    mailbox = service_client(client_node, RegisterMailbox, f'{name}/plc_mailbox', gateway)
-    calls = [mailbox.call_async(RegisterMailbox.Request(
-        format='me3can', registers=me3can_multi_read([LIVE[number % 2]] * 8)))
-        for number in range(2000)]
-    wait_until(lambda: any(call.done() for call in calls), 15.0, 'the first mailbox answer')
+    gateway, calls = mailbox_backlog(start_node, client_node)
     gateway.process.send_signal(signal.SIGINT)
     wait_until(lambda: 'shutting down' in gateway.output() or gateway.process.poll() is not None,
                2.0, 'the first signal taken')
