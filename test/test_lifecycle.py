@@ -6,6 +6,7 @@ process plays ``ros2 lifecycle set`` (lifecycle_msgs/ChangeState) and the robot'
 
 import uuid
 
+from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.msg import Parameter as ParameterMessage
@@ -32,7 +33,8 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
                        '-p', f'can.channel:={group}',
                        '-p', f'simulation.devices:=[{DEVICE}]',
                        '-p', f'nodes:=[{DEVICE}]',
-                       '-p', 'state_publish_period:=0.2'], port, 'cbcan_lifecycle_node')
+                       '-p', 'state_publish_period:=0.2',
+                       '-p', 'diagnostics_period:=0.1'], port, 'cbcan_lifecycle_node')
 
     def client(service_type, service: str):
         return service_client(client_node, service_type, f'{name}/{service}', node)
@@ -48,9 +50,15 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
         request = ChangeState.Request(transition=Transition(id=transition_id))
         return call(change_state, request, f'transition {transition_id}', node).success
 
-    states = []
+    states, diagnostics = [], []
     client_node.create_subscription(NodeStates, f'{name}/node_states', states.append,
                                     NODE_STATES_QOS)
+
+    def ours(array: DiagnosticArray) -> None:
+        if any(status.name.startswith(f'{name}:') for status in array.status):
+            diagnostics.append(array)
+
+    client_node.create_subscription(DiagnosticArray, '/diagnostics', ours, 10)
     assert state() == 'unconfigured'
     service_names = [n for n, _ in client_node.get_service_names_and_types()]
     assert f'{name}/sdo_read' not in service_names
@@ -94,7 +102,7 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
         assert list(answer.registers) == registers and 'inactive' in answer.message
 
     refused_while_inactive()
-    assert not states, 'nothing is published before activate'
+    assert not states and not diagnostics, 'nothing is published before activate'
 
     assert transition(Transition.TRANSITION_ACTIVATE)
     assert state() == 'active'
@@ -103,6 +111,7 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
     assert bytes(answer.data) == bytes([0x92, 0x01, 0x02, 0x00])
     wait_until(lambda: states and [n.node_id for n in states[-1].nodes] == [DEVICE], 5.0,
                'node_states published once active')
+    wait_until(lambda: diagnostics, 5.0, '/diagnostics published once active')
 
     assert transition(Transition.TRANSITION_DEACTIVATE)
     assert state() == 'inactive'
