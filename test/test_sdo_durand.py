@@ -587,7 +587,10 @@ def test_slow_device_never_delays_others_and_each_answer_is_its_own(setup, crowd
     assert len(latencies) == (2 * len(RW_OBJECTS) + len(CONSTANTS)) * len(FAST) * ROUNDS
     assert in_flight[1] >= 64, f'only {in_flight[1]} calls were in flight at once'
     slowest = max(latencies, key=lambda entry: entry[0])
-    assert slowest[0] < 1.0, f'a fast device answered after {slowest[0]:.2f} s: {slowest}'
+    # A call held up by the slow device would take its SLOW_DELAY; the margin below it is for
+    # 66 callers sharing 2 cores with the other test worker.
+    assert slowest[0] < 0.75 * SLOW_DELAY, \
+        f'a fast device answered after {slowest[0]:.2f} s: {slowest}'
     assert slow_response.success, slow_response.message
     assert bytes(slow_response.data) == struct.pack('<I', 0x51057)
     assert slow_done - slow_sent >= SLOW_DELAY
