@@ -57,9 +57,10 @@ $(BUILD_STAMP): $(VENV_STAMP) $(BUILD_INPUTS)
 # off sys.path, so the source cbcan_ros/ (no generated msg/srv) cannot shadow
 # the installed package.
 # Two worker processes (pytest-xdist): most tests wait on devices, timeouts and node
-# processes, so two workers halve the time on 2 cores.
+# processes, so two workers halve the time on 2 cores. The tests that load both cores by
+# themselves (conftest.HEAVY) share one worker, one after another.
 test: build
-	$(ROS_ENV) pytest -q -n 2 $(ROOT)/test $(ARGS)
+	$(ROS_ENV) pytest -q -n 2 --dist loadgroup $(ROOT)/test $(ARGS)
 
 # The repository built as a ROS user would (a fresh workspace, a plain `colcon build`), and
 # the node run from that install: tools/colcon-smoke.

@@ -35,6 +35,13 @@ SERVICE_TYPES = {
 DEFAULT_DEVICES = [2, 3, 5]
 
 
+# Tests that load both cores by themselves (bursts of a thousand calls, a 2,000-call
+# shutdown, 66 concurrent callers, the soak): `make test` runs two workers with
+# `--dist loadgroup`, which sends them all to one worker, so no two of them overlap and
+# their time bounds stay fair.
+HEAVY = pytest.mark.xdist_group('heavy')
+
+
 def new_channel() -> str:
     """Return a python-can channel name no other test uses."""
     return f'test-{uuid.uuid4().hex[:8]}'

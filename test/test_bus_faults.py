@@ -14,7 +14,7 @@ import pytest
 
 from cbcan_ros.simulation.canopen_device import SimulatedDevice
 
-from conftest import new_channel, wait_for_future, wait_until
+from conftest import HEAVY, new_channel, wait_for_future, wait_until
 import faulty_bus
 from faulty_bus import FaultController
 
@@ -174,6 +174,7 @@ def test_node_guarding_survives_send_errors_and_resumes(start_faulty):
                RECOVERY, 'guarding requests going on after the fault')
 
 
+@HEAVY
 def test_a_thousand_concurrent_calls_each_get_one_honest_answer(start_faulty):
     gateway, _faults = start_faulty(sdo__queue_limit=16)
     futures = [gateway.call_async('sdo_read', node_id=2 + i % 2, index=0x1000, subindex=0,

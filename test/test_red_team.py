@@ -15,9 +15,11 @@ from cbcan_ros.msg import SdoAccess
 from cbcan_ros.simulation.durand_device import DurandDevice
 from cbcan_ros.srv import SdoBatch, SdoRead, SdoWrite
 
-from conftest import new_channel, wait_for_future, wait_until
+from conftest import HEAVY, new_channel, wait_for_future, wait_until
 from fake_slcan import FakeSlcanAdapter
 from node_process import random_bus, service_client, START_TIMEOUT
+
+pytestmark = HEAVY
 
 DOMAIN = 0x2020  # the simulated devices' large DOMAIN (up to 64 KiB)
 BIG = bytes(i * 7 & 0xFF for i in range(65536))

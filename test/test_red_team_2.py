@@ -13,8 +13,10 @@ from test_process_faults import namespace
 
 from cbcan_ros.srv import SdoRead, SdoWrite
 
-from conftest import new_channel, wait_for_future, wait_until
+from conftest import HEAVY, new_channel, wait_for_future, wait_until
 from node_process import service_client, START_TIMEOUT
+
+pytestmark = HEAVY
 
 # A client in a process of its own: one answered call, so its response reader is matched to
 # the node's response writer, then it waits to be killed.

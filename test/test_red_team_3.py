@@ -24,8 +24,10 @@ from cbcan_ros.msg import NodeStates, SdoAccess
 from cbcan_ros.ros.interface import NODE_STATES_QOS
 from cbcan_ros.srv import RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 
-from conftest import new_channel, wait_for_future, wait_until
+from conftest import HEAVY, new_channel, wait_for_future, wait_until
 from node_process import random_bus, service_client, START_TIMEOUT
+
+pytestmark = HEAVY
 
 LIVE = (2, 3)            # simulated devices inside the node's process
 SILENT = range(10, 30)   # node ids nobody answers

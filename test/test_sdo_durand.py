@@ -18,7 +18,7 @@ import pytest
 
 from cbcan_ros.simulation.durand_device import DurandDevice
 
-from conftest import Harness, wait_for_future, wait_until
+from conftest import Harness, HEAVY, wait_for_future, wait_until
 
 DOMAIN = 0x2020
 DOMAIN_MUX = struct.pack('<HB', DOMAIN, 0)
@@ -516,6 +516,7 @@ def value_for(node_id: int, index: int, size: int, round_: int) -> bytes:
 
 
 @SEGMENTED
+@HEAVY
 def test_slow_device_never_delays_others_and_each_answer_is_its_own(setup, crowd):
     gateway = setup.gateway
     for service in ('sdo_read', 'sdo_write'):

@@ -9,8 +9,10 @@ import uuid
 
 from cbcan_ros.srv import SdoRead, SdoWrite
 
-from conftest import wait_for_future
+from conftest import HEAVY, wait_for_future
 from node_process import service_client
+
+pytestmark = HEAVY
 
 TOTAL = 20_000
 BURST = 150
