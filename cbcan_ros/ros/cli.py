@@ -525,6 +525,23 @@ def cmd_mailbox(client: Client, args) -> int:
     return 0
 
 
+def _object_arguments(command: argparse.ArgumentParser, subindex_help: str) -> None:
+    """Add what sdo-read and sdo-write share: NODE OBJECT [SUBINDEX], --eds and --timeout."""
+    command.add_argument('node', type=_node, metavar='NODE',
+                         help='node id 1..127 (0 = gateway)')
+    command.add_argument('object', metavar='OBJECT',
+                         help='object index (e.g. 0x1017) or its name in the EDS (e.g. '
+                              '"Producer heartbeat time", "Identity object.Vendor-ID"; any '
+                              'case)')
+    command.add_argument('subindex', nargs='?', metavar='SUBINDEX', help=subindex_help)
+    command.add_argument('--eds', metavar='FILE',
+                         help="EDS or DCF file naming the node's objects (default: the file "
+                              "in the gateway's parameter node_<NODE>.eds, asked when OBJECT "
+                              "is a name)")
+    command.add_argument('--timeout', type=_seconds, default=0.0, metavar='S',
+                         help="SDO timeout in seconds (default 0: the gateway's sdo.timeout)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``cbcan_cli``."""
     parser = argparse.ArgumentParser(
@@ -540,10 +557,6 @@ def build_parser() -> argparse.ArgumentParser:
                              '%(default)g)')
     commands = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
 
-    object_help = ('object index (e.g. 0x1017) or its name in the EDS (e.g. "Producer '
-                   'heartbeat time", "Identity object.Vendor-ID"; any case)')
-    eds_help = ("EDS or DCF file naming the node's objects (default: the file in the "
-                "gateway's parameter node_<NODE>.eds, asked when OBJECT is a name)")
     types = ' '.join(VALUE_TYPES)
 
     read = commands.add_parser('sdo-read', help='read an object (SDO upload)',
@@ -551,20 +564,14 @@ def build_parser() -> argparse.ArgumentParser:
                                            'as --type, as its EDS type when named by name, '
                                            'or else 1, 2 and 4 bytes as an unsigned '
                                            'little-endian number and printable ASCII as text.')
-    read.add_argument('node', type=_node, metavar='NODE', help='node id 1..127 (0 = gateway)')
-    read.add_argument('object', metavar='OBJECT', help=object_help)
-    read.add_argument('subindex', nargs='?', metavar='SUBINDEX',
-                      help='sub-index (default 0), or the entry of a record or array named '
-                           'by OBJECT: its sub-index or its name')
+    _object_arguments(read, 'sub-index (default 0), or the entry of a record or array named by '
+                            'OBJECT: its sub-index or its name')
     read.add_argument('--type', dest='value_type', type=_type_name, metavar='TYPE',
                       help=f'decode the answer as TYPE: {types} (default: the EDS type of a '
                            f'named object)')
-    read.add_argument('--eds', metavar='FILE', help=eds_help)
     read.add_argument('--max-size', type=_ranged('max-size', 0, 0xFFFFFFFF), default=0,
                       metavar='N', help='largest answer accepted in bytes (default 0: no '
                                         'limit)')
-    read.add_argument('--timeout', type=_seconds, default=0.0, metavar='S',
-                      help="SDO timeout in seconds (default 0: the gateway's sdo.timeout)")
     read.set_defaults(run=cmd_sdo_read)
 
     write = commands.add_parser('sdo-write', help='write an object (SDO download)',
@@ -574,20 +581,14 @@ def build_parser() -> argparse.ArgumentParser:
                                             '"78 56 34 12"); an object named by name is '
                                             'written as its EDS type. Numbers are written '
                                             'little-endian.')
-    write.add_argument('node', type=_node, metavar='NODE', help='node id 1..127 (0 = gateway)')
-    write.add_argument('object', metavar='OBJECT', help=object_help)
-    write.add_argument('subindex', nargs='?', metavar='SUBINDEX',
-                       help='sub-index: required after an index; after a name only for the '
-                            'entry of a record or array (its sub-index or name)')
+    _object_arguments(write, 'sub-index: required after an index; after a name only for the '
+                             'entry of a record or array (its sub-index or name)')
     write.add_argument('value', nargs='+', metavar='VALUE',
                        help='the value; several words are joined (hex: without spaces, '
                             'str: with one space)')
     write.add_argument('--type', dest='value_type', type=_type_name, metavar='TYPE',
                        help=f'how to read VALUE: {types} (default: the EDS type of a named '
                             f'object, else hex)')
-    write.add_argument('--eds', metavar='FILE', help=eds_help)
-    write.add_argument('--timeout', type=_seconds, default=0.0, metavar='S',
-                       help="SDO timeout in seconds (default 0: the gateway's sdo.timeout)")
     write.set_defaults(run=cmd_sdo_write)
 
     batch = commands.add_parser('sdo-batch', help='several reads and writes in one call',
