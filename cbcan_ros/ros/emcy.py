@@ -1,13 +1,10 @@
 """``~/emcy``: every emergency message (EMCY) of every device, published as it arrives."""
 
-from typing import Callable
-
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 
 from ..core.emcy import Emergency
-from ..core.gateway import Gateway
 from ..msg import Emcy
 
 # Reliable and deep: an EMCY is an event a subscriber must not miss, and one fault (a power
@@ -29,23 +26,19 @@ def emcy_message(emergency: Emergency) -> Emcy:
 
 
 class EmcyPublisher:
-    """Publishes on ``~/emcy`` every EMCY the gateway receives.
+    """Publishes EMCYs on ``~/emcy``.
 
-    Created before the gateway starts, so an EMCY a device sends at boot is published too. It
-    is published from the bus thread at once (rclpy publishers may be used from any thread),
-    so an EMCY never waits for the executor.
+    The node calls :meth:`publish` from the bus thread as each EMCY arrives (rclpy publishers
+    may be used from any thread), so an EMCY never waits for the executor.
     """
 
-    def __init__(self, node: Node, gateway: Gateway, active: Callable[[], bool]):
+    def __init__(self, node: Node):
         self._node = node
-        self._active = active
         self._publisher = node.create_publisher(Emcy, '~/emcy', EMCY_QOS)
-        gateway.emcy.add_listener(self.publish)
 
     def publish(self, emergency: Emergency) -> None:
-        """Publish one EMCY (only while the node is active)."""
-        if self._active():
-            self._publisher.publish(emcy_message(emergency))
+        """Publish one EMCY."""
+        self._publisher.publish(emcy_message(emergency))
 
     def destroy(self) -> None:
         """Take the topic away (after the bus is closed: no EMCY comes any more)."""

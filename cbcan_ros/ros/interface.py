@@ -120,7 +120,8 @@ class GatewayInterface:
             core_logger.removeHandler(self._log_handler)
             raise
         # Before the bus opens, so an EMCY a device sends as it boots is published too.
-        self._emcy = EmcyPublisher(node, self.gateway, lambda: self.active)
+        self._emcy = EmcyPublisher(node)
+        self.gateway.emcy.add_listener(self._publish_emcy)
         self.gateway.start()
         for device in self.simulated_devices:
             device.start()
@@ -289,6 +290,10 @@ class GatewayInterface:
                 return
             self._states_changed.clear()
             self._publish_states()
+
+    def _publish_emcy(self, emergency) -> None:
+        if self.active:
+            self._emcy.publish(emergency)
 
     def _publish_diagnostics(self) -> None:
         if self.active:
