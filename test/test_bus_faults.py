@@ -23,6 +23,8 @@ DEVICE_TYPE = struct.pack('<I', 0x00020192)
 BUS_LOGGER = 'cbcan_ros.core.bus'
 RECOVERY = 10.0  # backoff doubles up to 5 s; generous for a loaded CI machine
 PROMPT = 1.0     # "at once", with room for a loaded CI machine
+# Fatek CBCAN mailbox words (PLC_MAILBOX_FORMATS.md): the flag, SDO read, and result 4 = failed
+MAILBOX_FLAG, MAILBOX_READ, MAILBOX_RESULT_FAILED = 0xCA0E, 5055, 4
 
 faulty_bus.register()
 
@@ -114,6 +116,27 @@ def test_pending_and_queued_calls_are_answered_at_once_when_the_bus_goes_down(st
     for response in answers:
         assert not response.success
         assert 'CAN bus is down' in response.message, response.message
+    faults.clear()
+    wait_for_recovery(gateway)
+
+
+def test_mailbox_calls_waiting_when_the_bus_goes_down_are_answered_at_once(start_faulty):
+    # The PLC mailbox runs on its own event loop: a block waiting on the bus, and blocks
+    # queued behind it, get their failed answer when the bus goes, as SDO calls do.
+    gateway, faults = start_faulty()
+    gateway.devices[2].slow_read_delay = 3.0
+    block = [MAILBOX_FLAG, MAILBOX_READ, 2, 0x2200, 0, 4] + [0] * 64
+    calls = [gateway.call_async('plc_mailbox', format='cbcan', registers=block)
+             for _ in range(4)]
+    wait_until(lambda: any(m.arbitration_id == 0x602 for m in faults.sent), PROMPT,
+               'the slow request on the bus')
+    faults.fail_open('adapter gone')
+    faults.fail_receive('adapter unplugged')
+    started = time.monotonic()
+    answers = [wait_for_future(future, PROMPT + 1.0) for future in calls]
+    assert time.monotonic() - started < PROMPT
+    for answer in answers:
+        assert answer.registers[0] == MAILBOX_RESULT_FAILED, list(answer.registers[:8])
     faults.clear()
     wait_for_recovery(gateway)
 
