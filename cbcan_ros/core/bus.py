@@ -6,7 +6,9 @@ the gateway deaf while it looks healthy. Here one thread opens the bus, receives
 failure (receive or send error, bus-off, an adapter that disappears, a bus that cannot be
 opened) reports the bus down once, closes it and opens it again with backoff until it works.
 
-Frames go to canopen through ``Network.notify``, the hook canopen offers custom back ends;
+Frames go to canopen through ``Network.notify``, the hook canopen offers custom back ends,
+stamped with the host's monotonic clock when this thread takes them from the driver (never
+the adapter's timestamp);
 the network's ``bus`` is a small proxy whose ``send`` goes through the supervisor, so a send
 on a bus that is down fails at once with :class:`BusDown` instead of reaching a dead driver.
 """
@@ -206,7 +208,9 @@ class BusSupervisor:
                 continue
             self._received += 1
             try:
-                self._network.notify(message.arbitration_id, message.data, message.timestamp)
+                # Every consumer gets the host's monotonic clock as the frame's time: an
+                # adapter's own clock may be offset from the host's by seconds and drift.
+                self._network.notify(message.arbitration_id, message.data, time.monotonic())
             except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest
                 kind = type(error).__name__
                 if kind not in self._listener_errors:

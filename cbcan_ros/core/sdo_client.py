@@ -22,9 +22,12 @@ is listed in the README so it can be offered upstream:
    collection closes it again and it sends its end frame in the middle of a later transfer.
    :class:`DownloadStream` closes once.
    A stream whose initiation failed is closed silently too.
-8. A response's arrival is the driver's receive timestamp, not the moment the frame is
-   handed on: a receive thread held up by other traffic must not make a frame that was on
-   the bus before a request look like its answer.
+8. A response's arrival is the moment the receive path took it from the driver, on the
+   host's monotonic clock (``bus.py`` stamps every frame so), never the adapter's timestamp:
+   adapters' clocks are offset from the host's, by seconds on some, and drift. A frame the
+   receive path took before the request was sent never answers it. (A frame still waiting
+   in the driver's buffer when the request is sent cannot be told apart by order alone; the
+   matching of item 1 is what keeps such a late answer to another request out.)
 """
 
 import io
@@ -53,8 +56,6 @@ _TOGGLE = 0x10
 _MUX = struct.Struct('<HB')
 
 IGNORE = 'ignore'
-# A driver timestamp further from now than this is taken to be of another clock.
-PLAUSIBLE_AGE = 5.0
 Verdict = Union[None, str, int]  # None: the answer; IGNORE: not ours; int: abort with code
 
 
@@ -152,14 +153,8 @@ class StrictSdoClient(SdoClient):
     # canopen calls these four from its transfer streams.
 
     def on_response(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        """Queue a response frame with the time it arrived on the bus."""
-        # Wall clock first: if this thread is preempted between the two readings, the frame
-        # looks younger than it is, never older, so a real answer is never taken for stale.
-        age = time.time() - timestamp
-        now = time.monotonic()
-        if 0.0 < age < PLAUSIBLE_AGE:
-            now -= age
-        self.responses.put((now, bytes(data)))
+        """Queue a response frame with ``timestamp``: when the receive path took it."""
+        self.responses.put((timestamp, bytes(data)))
 
     def send_request(self, request) -> None:
         """Send a request frame, unless the transfer has already ended."""
@@ -243,7 +238,7 @@ class StrictSdoClient(SdoClient):
             if frame is _Cancel:
                 self._raise_if_ended()
                 continue
-            if arrived < self._sent_at or len(frame) < 8:
+            if arrived <= self._sent_at or len(frame) < 8:
                 self.ignored_frames += 1
                 continue
             if frame[0] == _ABORT:
