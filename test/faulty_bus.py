@@ -232,10 +232,15 @@ class FaultyBus(can.BusABC):
 
 def register() -> None:
     """Make ``can.Bus(interface='faulty', channel=...)`` create a FaultyBus (idempotent)."""
+    register_backend(INTERFACE_NAME, __name__, FaultyBus.__name__)
+
+
+def register_backend(name: str, module: str, class_name: str) -> None:
+    """Make ``can.Bus(interface=name)`` create ``module.class_name`` in this process."""
     import can.interfaces
     import can.util
 
-    can.interfaces.BACKENDS[INTERFACE_NAME] = (__name__, FaultyBus.__name__)
+    can.interfaces.BACKENDS[name] = (module, class_name)
     valid = frozenset(can.interfaces.BACKENDS)
     can.interfaces.VALID_INTERFACES = valid
     can.util.VALID_INTERFACES = valid

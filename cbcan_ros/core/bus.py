@@ -6,16 +6,23 @@ the gateway deaf while it looks healthy. Here one thread opens the bus, receives
 failure (receive or send error, bus-off, an adapter that disappears, a bus that cannot be
 opened) reports the bus down once, closes it and opens it again with backoff until it works.
 
-Frames go to canopen through ``Network.notify``, the hook canopen offers custom back ends,
-stamped with the host's monotonic clock when this thread takes them from the driver (never
-the adapter's timestamp);
+Frames go to canopen through ``Network.notify``, the hook canopen offers custom back ends;
 the network's ``bus`` is a small proxy whose ``send`` goes through the supervisor, so a send
 on a bus that is down fails at once with :class:`BusDown` instead of reaching a dead driver.
+
+Two threads share the work. The receive thread only takes frames from the driver and stamps
+each with the host's monotonic clock as it takes it; the dispatch thread hands them to
+canopen in that order. An adapter's own timestamp is never used: adapters' clocks are offset
+from the host's (by seconds on some) and drift. And a frame handler that takes its time (or
+a burst of frames) holds up only the dispatch: frames are still taken and stamped as they
+come, so a frame that was on the bus before a request was sent is stamped before it, and
+the SDO client can tell it is not the request's answer.
 """
 
 import contextlib
 from dataclasses import dataclass
 import logging
+import queue
 import threading
 import time
 from typing import Callable, List, Optional
@@ -95,7 +102,10 @@ class BusSupervisor:
         self._error_frames = 0
         self._listener_errors = set()
         self._listeners: List[Callable[[BusStatus], None]] = []
+        self._frames: queue.SimpleQueue = queue.SimpleQueue()  # (id, data, stamp) or None
         self._thread = threading.Thread(target=self._run, name='can-bus', daemon=True)
+        self._dispatcher = threading.Thread(target=self._dispatch, name='can-dispatch',
+                                            daemon=True)
         network.bus = _SupervisedBus(self)
 
     def add_listener(self, listener: Callable[[BusStatus], None]) -> None:
@@ -115,6 +125,7 @@ class BusSupervisor:
         A bus that cannot be opened now is no error: it is retried in the background and
         the status says why it is down meanwhile.
         """
+        self._dispatcher.start()
         self._thread.start()
         self._first_attempt.wait(MAX_RETRY)
 
@@ -131,6 +142,9 @@ class BusSupervisor:
         self._wake.set()
         if self._thread.is_alive():
             self._thread.join(timeout=2.0)
+        self._frames.put(None)
+        if self._dispatcher.is_alive():
+            self._dispatcher.join(timeout=2.0)
 
     def send(self, message: can.Message) -> None:
         """Send ``message``; raise :class:`BusDown` when there is no usable bus.
@@ -184,9 +198,10 @@ class BusSupervisor:
             retry = min(retry * 2, MAX_RETRY)
 
     def _receive(self, bus: can.BusABC) -> Optional[str]:
-        """Feed frames to canopen until a fault (returned as its reason) or stop (None)."""
+        """Take frames from the driver until a fault (returned as its reason) or stop (None)."""
         # The hot path: flags are read and this thread's own counters bumped without the
         # lock (one writer; reading an attribute is atomic), so a frame costs no lock.
+        frames = self._frames
         while True:
             if self._stopping:
                 return None
@@ -198,6 +213,7 @@ class BusSupervisor:
                 return f'receiving failed: {error}'
             if message is None:
                 continue
+            stamp = time.monotonic()
             if message.is_error_frame:
                 self._error_frames += 1
                 if message.arbitration_id & CAN_ERR_BUSOFF:
@@ -207,10 +223,17 @@ class BusSupervisor:
             if message.is_remote_frame or message.is_extended_id:
                 continue
             self._received += 1
+            frames.put((message.arbitration_id, message.data, stamp))
+
+    def _dispatch(self) -> None:
+        """Hand the frames to canopen's subscribers, in the order they were taken."""
+        frames = self._frames
+        while True:
+            frame = frames.get()
+            if frame is None:
+                return
             try:
-                # Every consumer gets the host's monotonic clock as the frame's time: an
-                # adapter's own clock may be offset from the host's by seconds and drift.
-                self._network.notify(message.arbitration_id, message.data, time.monotonic())
+                self._network.notify(*frame)
             except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest
                 kind = type(error).__name__
                 if kind not in self._listener_errors:

@@ -22,12 +22,11 @@ is listed in the README so it can be offered upstream:
    collection closes it again and it sends its end frame in the middle of a later transfer.
    :class:`DownloadStream` closes once.
    A stream whose initiation failed is closed silently too.
-8. A response's arrival is the moment the receive path took it from the driver, on the
-   host's monotonic clock (``bus.py`` stamps every frame so), never the adapter's timestamp:
-   adapters' clocks are offset from the host's, by seconds on some, and drift. A frame the
-   receive path took before the request was sent never answers it. (A frame still waiting
-   in the driver's buffer when the request is sent cannot be told apart by order alone; the
-   matching of item 1 is what keeps such a late answer to another request out.)
+8. A response's arrival is the moment the gateway's receive thread took it from the
+   driver, on the host's monotonic clock (``bus.py`` stamps every frame so and does nothing
+   else on that thread, so a slow handler or a burst does not delay the stamp), never the
+   adapter's timestamp: adapters' clocks are offset from the host's, by seconds on some,
+   and drift. A frame taken before the request was sent never answers it.
 """
 
 import io
