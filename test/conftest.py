@@ -167,6 +167,27 @@ class Harness:
         self.node.destroy_node()
 
 
+@pytest.fixture
+def measured(record_property):
+    """Return ``measured(text)``: a measurement shown at the end of every run's output.
+
+    It travels as a property of the test's report, so it is shown with two workers too.
+    """
+    return lambda text: record_property('measured', text)
+
+
+def pytest_terminal_summary(terminalreporter):
+    """Print the measurements tests reported with the ``measured`` fixture."""
+    lines = [f'{report.nodeid}: {value}'
+             for reports in terminalreporter.stats.values() for report in reports
+             if getattr(report, 'when', '') == 'call'
+             for name, value in report.user_properties if name == 'measured']
+    if lines:
+        terminalreporter.section('measured')
+        for line in lines:
+            terminalreporter.write_line(line)
+
+
 @pytest.fixture(scope='session', autouse=True)
 def ros_context():
     """Start rclpy once for the whole session."""

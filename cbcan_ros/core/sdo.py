@@ -272,6 +272,7 @@ class _Job:
     future: Future
     count: Optional[int]  # a batch's number of accesses; None for a single access
     started: Optional[float] = None  # time.monotonic() when the worker took it
+    watch: Optional[list] = None  # its deadline watch while it waits (Deadlines.watch)
 
     def failed(self, result: SdoResult) -> object:
         """Return the job's answer when it ends with ``result`` before it ran."""
@@ -279,22 +280,51 @@ class _Job:
 
 
 class Deadlines:
-    """One thread that answers queued requests whose time ran out before their turn."""
+    """One thread that answers queued requests whose time ran out before their turn.
+
+    A request answered in time cancels its watch, which drops everything the watch held
+    (the request, its future, its answer) at once rather than at its deadline: a gateway
+    answering thousands of calls with long timeouts holds only those still waiting.
+    """
+
+    # Cancelled watches are left in the heap (removing one from its middle costs a full
+    # pass) until they are more than half of it, and at least this many.
+    COMPACT_AT = 64
 
     def __init__(self):
-        self._heap = []
+        self._heap: List[list] = []  # [deadline, order, expire or None when cancelled]
+        self._cancelled = 0
         self._order = itertools.count()
         self._changed = threading.Condition()
         self._running = True
         self._thread = threading.Thread(target=self._run, name='sdo-deadlines', daemon=True)
         self._thread.start()
 
-    def watch(self, deadline: float, expire: Callable[[], None]) -> None:
-        """Call ``expire()`` at ``deadline`` (time.monotonic())."""
+    def watch(self, deadline: float, expire: Callable[[], None]) -> list:
+        """Call ``expire()`` at ``deadline`` (time.monotonic()); returns a handle to cancel."""
+        entry = [deadline, next(self._order), expire]
         with self._changed:
-            heapq.heappush(self._heap, (deadline, next(self._order), expire))
-            if self._heap[0][2] is expire:
+            heapq.heappush(self._heap, entry)
+            if self._heap[0] is entry:
                 self._changed.notify()
+        return entry
+
+    def cancel(self, entry: list) -> None:
+        """Forget the watch ``entry`` (and what its ``expire`` holds) without calling it."""
+        with self._changed:
+            if entry[2] is None:
+                return
+            entry[2] = None
+            self._cancelled += 1
+            if self._cancelled >= self.COMPACT_AT and 2 * self._cancelled > len(self._heap):
+                self._heap = [kept for kept in self._heap if kept[2] is not None]
+                heapq.heapify(self._heap)
+                self._cancelled = 0
+
+    def __len__(self) -> int:
+        """Return how many watches are held, cancelled ones not yet dropped included."""
+        with self._changed:
+            return len(self._heap)
 
     def stop(self) -> None:
         """End the thread; pending deadlines are dropped."""
@@ -308,7 +338,10 @@ class Deadlines:
             while self._running:
                 now = time.monotonic()
                 if self._heap and self._heap[0][0] <= now:
-                    _, _, expire = heapq.heappop(self._heap)
+                    expire = heapq.heappop(self._heap)[2]
+                    if expire is None:
+                        self._cancelled -= 1
+                        continue
                     self._changed.release()
                     try:
                         expire()
@@ -404,11 +437,10 @@ class SdoChannel:
                     abort_codes.NO_RESOURCE)
             if refusal is None:
                 self._queue.append(job)
+                job.watch = self._deadlines.watch(job.deadline, lambda: self._expire(job))
                 self._changed.notify()
         if refusal is not None:
             self._resolve(job, job.failed(refusal))
-        else:
-            self._deadlines.watch(job.deadline, lambda: self._expire(job))
         return job.future
 
     def _expire(self, job: _Job) -> None:
@@ -430,6 +462,7 @@ class SdoChannel:
                 job = self._queue.popleft()
                 job.started = time.monotonic()
             self._resolve(job, job.run(job.deadline))
+            del job  # an idle worker must not keep its last request (and answer) alive
 
     def _resolve(self, job: _Job, result) -> None:
         """Give ``job`` its one answer; every answer of this channel passes here.
@@ -438,6 +471,8 @@ class SdoChannel:
         """
         if job.future.done():
             return  # a job is answered once by design: a stray second answer is not counted
+        if job.watch is not None:
+            self._deadlines.cancel(job.watch)
         results = result if job.count is not None else (result,)
         successes = aborts = timeouts = 0
         for one in results:
