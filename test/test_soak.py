@@ -44,13 +44,15 @@ def test_twenty_thousand_mixed_requests_keep_the_node_s_memory_flat(start_node, 
         node = (2, 3, 5)[i % 3]
         kind = i % 10
         if kind < 5:
-            return sdo_read, SdoRead.Request(node_id=node, index=0x1000, timeout=TIMEOUT), DEVICE_TYPE
+            return (sdo_read, SdoRead.Request(node_id=node, index=0x1000, timeout=TIMEOUT),
+                    DEVICE_TYPE)
         if kind < 8:
             data = list(struct.pack('<H', i & 0xFFFF))
             return sdo_write, SdoWrite.Request(node_id=node, index=0x2001, data=data,
                                                     timeout=TIMEOUT), None
         if kind == 8:
-            return sdo_read, SdoRead.Request(node_id=node, index=0x6000, timeout=TIMEOUT), 0x06020000
+            return (sdo_read, SdoRead.Request(node_id=node, index=0x6000, timeout=TIMEOUT),
+                    0x06020000)
         return sdo_read, SdoRead.Request(node_id=0, index=0x1018, subindex=2,
                                            timeout=TIMEOUT), (
             struct.pack('<I', 0xCBCA))
