@@ -93,9 +93,11 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
         answer = call(client(NmtCommand, 'nmt_command'), NmtCommand.Request(
             node_id=DEVICE, command=1), 'nmt_command', node)
         assert not answer.success and 'inactive' in answer.message
+        assert answer.abort_code == INACTIVE_ABORT
         answer = call(client(NmtState, 'nmt_state'), NmtState.Request(node_id=DEVICE),
                       'nmt_state', node)
         assert not answer.success and 'inactive' in answer.message
+        assert answer.abort_code == INACTIVE_ABORT
         registers = [0] * 26
         answer = call(client(RegisterMailbox, 'plc_mailbox'), RegisterMailbox.Request(
             format='cbcan', registers=registers), 'plc_mailbox', node)

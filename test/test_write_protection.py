@@ -37,6 +37,7 @@ def test_read_only_refuses_writes_and_nmt_but_reads(make_gateway):
     assert own.abort_code == LOCAL_CONTROL
     nmt = gateway.call('nmt_command', node_id=5, command=1)
     assert not nmt.success and 'read_only' in nmt.message
+    assert nmt.abort_code == LOCAL_CONTROL
     assert gateway.device(5).state == 127, 'the NMT command was not sent'
     assert gateway.call('sdo_read', node_id=5, index=0x2002, subindex=0).success
 

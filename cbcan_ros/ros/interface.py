@@ -259,16 +259,20 @@ class GatewayInterface:
 
     def _on_nmt_command(self, request, response):
         if not self.active:
-            response.success, response.message = False, INACTIVE
+            response.success, response.abort_code, response.message = (False, INACTIVE_ABORT,
+                                                                        INACTIVE)
             return response
         result = self.gateway.nmt_command(request.node_id, request.command)
         response.success = result.success
+        response.abort_code = result.abort_code
         response.message = result.message
         return response
 
     def _on_nmt_state(self, request, response):
         problem = INACTIVE if not self.active else check_node_id(request.node_id, '1..127',
                                                                  lowest=1)
+        if not self.active:
+            response.abort_code = INACTIVE_ABORT
         if problem:
             response.success = False
             response.state = NmtState.Response.NOT_DETECTED
