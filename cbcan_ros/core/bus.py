@@ -40,6 +40,16 @@ SEND_TIMEOUT = 0.2  # a transmit queue that does not drain is a fault, not a han
 CAN_ERR_BUSOFF = 0x40
 
 
+def slcan_bitrates() -> List[int]:
+    """Return the bit rates python-can's slcan driver can set (its table of S commands).
+
+    python-can keeps the table private (``slcanBus._BITRATES``) and fails every open with
+    another rate, so the parameter checks ask here rather than let the bus reopen for ever.
+    """
+    from can.interfaces.slcan import slcanBus
+    return sorted(slcanBus._BITRATES)
+
+
 class BusDown(Exception):
     """The CAN bus is not usable now; the message says why."""
 

@@ -2,20 +2,22 @@
 
 A device sends an EMCY (COB-ID 0x80 + node id, CiA 301) when an error occurs and one with
 error code 0x00xx (error reset) when its errors are gone. Each device gets a
-``canopen.emcy.EmcyConsumer``, which decodes the frame, names the error code's class
-(``EmcyError.get_desc()``) and keeps the active errors until an error reset. Here the last
+``canopen.emcy.EmcyConsumer`` (through ``canopen_gaps.EmcyDecoder``), which decodes the
+frame, names the error code's class (``EmcyError.get_desc()``) and tells an active error
+from an error reset. Here the last
 EMCY and the latest active error of every device are kept for diagnostics, and listeners (the
 ROS layer) hear of every EMCY as it arrives.
 """
 
 from dataclasses import dataclass
 import logging
-import struct
 import threading
 import time
 from typing import Callable, Dict, List, Optional
 
-from canopen.emcy import EmcyConsumer, EmcyError
+from canopen.emcy import EmcyError
+
+from .canopen_gaps import EmcyDecoder, MalformedEmcy
 
 LOGGER = logging.getLogger(__name__)
 
@@ -50,10 +52,10 @@ class EmcyStatus:
 
 
 class _Device:
-    __slots__ = ('consumer', 'last', 'active', 'malformed')
+    __slots__ = ('decoder', 'last', 'active', 'malformed')
 
     def __init__(self):
-        self.consumer = EmcyConsumer()
+        self.decoder = EmcyDecoder()
         self.last: Optional[Emergency] = None
         self.active: Optional[Emergency] = None
         self.malformed = 0
@@ -104,10 +106,9 @@ class EmcyMonitor:
             device = self._devices.get(node_id)
             if device is None:
                 device = self._devices[node_id] = _Device()
-        consumer = device.consumer
         try:
-            consumer.on_emcy(can_id, data, timestamp)
-        except struct.error:
+            error, is_active = device.decoder.decode(can_id, data, timestamp)
+        except MalformedEmcy:
             with self._lock:
                 device.malformed += 1
                 first = device.malformed == 1
@@ -115,13 +116,6 @@ class EmcyMonitor:
                 LOGGER.warning('node %d sent an EMCY of %d bytes (CiA 301: 8): ignored, as are '
                                'further malformed ones from it', node_id, len(data))
             return
-        with consumer.emcy_received:
-            error = consumer.log[-1]
-            # An error reset has emptied the consumer's active list; any other EMCY is on it.
-            is_active = bool(consumer.active) and consumer.active[-1] is error
-            # canopen keeps every EMCY for ever; only the latest is needed here.
-            del consumer.log[:]
-            del consumer.active[:-1]
         emergency = _emergency(node_id, error)
         with self._lock:
             device.last = emergency

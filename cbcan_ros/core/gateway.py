@@ -18,6 +18,7 @@ from canopen import objectdictionary as od
 
 from . import abort_codes, nmt
 from .bus import BusDown, BusStatus, BusSupervisor
+from .canopen_gaps import StrictSdoClient, without_heartbeat_producer
 from .emcy import EmcyMonitor
 from .sdo import (
     Access,
@@ -32,7 +33,6 @@ from .sdo import (
     SdoResult,
     SdoStatistics,
 )
-from .sdo_client import StrictSdoClient
 from .write_protection import WriteProtection
 
 LOGGER = logging.getLogger(__name__)
@@ -116,10 +116,7 @@ def own_dictionary() -> canopen.LocalNode:
                                       'const' if subindex == 0 else 'ro', value))
     dictionary.add_object(identity)
     dictionary.node_id = 0  # canopen reads a node id of 0 as "take it from the dictionary"
-    node = canopen.LocalNode(0, dictionary)
-    # LocalNode starts a heartbeat producer when 0x1017 is written; this dictionary has no bus.
-    node._write_callbacks.remove(node.nmt.on_write)
-    return node
+    return without_heartbeat_producer(canopen.LocalNode(0, dictionary))
 
 
 class Gateway:

@@ -13,7 +13,6 @@ from concurrent.futures import Future, InvalidStateError
 import contextlib
 from dataclasses import dataclass
 import heapq
-import io
 import itertools
 import logging
 import math
@@ -26,7 +25,14 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from . import abort_codes
 from .bus import BusDown
-from .sdo_client import DownloadStream, StrictSdoClient, TransferAborted, TransferCancelled
+from .canopen_gaps import (
+    close_without_frames,
+    DownloadStream,
+    StrictSdoClient,
+    TransferAborted,
+    TransferCancelled,
+    upload_finished,
+)
 
 LOGGER = logging.getLogger(__name__)
 
@@ -132,7 +138,7 @@ def _close_after_failure(client: StrictSdoClient, stream) -> None:
     # The transfer ends with an abort (if the device heard of it); the stream is then marked
     # closed without canopen's closing frames and log lines, now and at garbage collection.
     client.abort(abort_codes.GENERAL_ERROR)
-    io.RawIOBase.close(stream)
+    close_without_frames(stream)
 
 
 def upload(client: StrictSdoClient, index: int, subindex: int, max_size: int,
@@ -164,8 +170,8 @@ def _read_all(client: StrictSdoClient, stream, max_size: int) -> bytes:
         while True:
             part = stream.read(7)
             # A segment may carry no data and still say more follow (c = 0): only the
-            # stream's own end (canopen's _done, set by the last segment) ends the upload.
-            if not part and getattr(stream, '_done', True):
+            # stream's own end ends the upload.
+            if not part and upload_finished(stream):
                 break
             parts.append(part)
             received += len(part)

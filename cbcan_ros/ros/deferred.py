@@ -13,7 +13,7 @@ take the request's header) is wrapped to keep that header until the gateway's fu
 resolves, and the answer then leaves from the thread that resolved it: a device's worker, the
 deadline watcher, the bus supervisor or shutdown. The executor holds nothing per waiting call,
 and an answer never waits for the executor. rclcpp has this as deferred responses; rclpy has
-no such API yet, which is why the wrapping lives here, in one place.
+no such API yet: the wrapping is ``rclpy_gaps.intercept_responses``.
 """
 
 import asyncio
@@ -23,7 +23,7 @@ import threading
 import time
 from typing import Callable, Coroutine, Dict, Optional, Tuple
 
-from rclpy.exceptions import InvalidHandle
+from .rclpy_gaps import drain, intercept_responses
 
 LOGGER = logging.getLogger(__name__)
 
@@ -78,8 +78,7 @@ class DeferredService:
         self._send_failures = set()
         self._node = node
         self._service = node.create_service(srv_type, name, self._take, **options)
-        self._send = self._service.send_response
-        self._service.send_response = self._send_when_ready
+        self._send = intercept_responses(self._service, self._send_when_ready)
 
     def destroy(self) -> None:
         """Answer the requests that arrived but were never taken, then take the service away."""
@@ -121,25 +120,6 @@ class DeferredService:
                              'this kind are not logged', self._service.srv_name, kind, error)
         finally:
             self._calls.end()
-
-
-def drain(service) -> None:
-    """Hand each request still waiting in ``service`` (never taken) to its callback, once.
-
-    Called once the executor takes no more requests (shutdown) or is busy taking the service
-    away (cleanup): without it those callers would wait for ever. The request is taken as
-    rclpy's executors take it (``service.handle.service_take_request``).
-    """
-    while True:
-        try:
-            with service.handle:
-                request, header = service.handle.service_take_request(
-                    service.srv_type.Request)
-        except InvalidHandle:
-            return
-        if header is None:
-            return
-        service.send_response(service.callback(request, service.srv_type.Response()), header)
 
 
 class CoroutineRunner:

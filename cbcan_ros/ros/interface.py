@@ -28,9 +28,10 @@ from ..msg import SdoResult as SdoResultMessage
 from ..plc.mailbox import Mailbox
 from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 from .config import NodeParameters
-from .deferred import CallsInProgress, CoroutineRunner, DeferredService, drain
+from .deferred import CallsInProgress, CoroutineRunner, DeferredService
 from .diagnostics import Diagnostics
 from .emcy import EmcyPublisher
+from .rclpy_gaps import drain
 
 NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -17,6 +17,7 @@ from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from .config import NodeParameters
 from .interface import GatewayInterface
 from .node import run
+from .rclpy_gaps import refuse_unavailable_transitions
 
 
 class CbcanLifecycleNode(LifecycleNode):
@@ -27,21 +28,8 @@ class CbcanLifecycleNode(LifecycleNode):
         self._node_parameters = NodeParameters(self)
         self.interface = None
         # rclpy's change_state raises for a transition the current state does not have
-        # (configure twice), which ends the executor and the node; rclcpp answers
-        # success false, and so does this.
-        self._rclpy_change_state = self._service_change_state.callback
-        self._service_change_state.callback = self._change_state
-
-    def _change_state(self, request, response):
-        transition = request.transition
-        available = {described[0] for described in self._state_machine.available_transitions}
-        if not transition.label and transition.id not in available:
-            self.get_logger().warning(
-                f'transition {transition.id} refused: state '
-                f'{self._state_machine.current_state[1]} has no such transition')
-            response.success = False
-            return response
-        return self._rclpy_change_state(request, response)
+        # (configure twice), which would end the node; rclcpp answers success false.
+        refuse_unavailable_transitions(self)
 
     @property
     def gateway(self):

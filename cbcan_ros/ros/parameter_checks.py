@@ -25,8 +25,10 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from ..core.bus import slcan_bitrates
 from ..core.text import quoted
 from ..core.write_protection import parse_rule, RULE_FORMAT, WriteRule
+from .rclpy_gaps import parameter_overrides
 
 # How much of a wrong value a message shows: a parameter file may hold anything.
 SHOWN_LIMIT = 60
@@ -116,8 +118,7 @@ def check_unknown(node: Node, declared: Iterable[str]) -> None:
     name in one of the groups of ``declared`` (``can.``, ``sdo.`` ...) or close to one of
     its names. Other names are left alone (other code may declare them).
     """
-    # rclpy keeps the values given for the node (-p, parameter files) only in this attribute.
-    overrides: Dict[str, Parameter] = getattr(node, '_parameter_overrides', {})
+    overrides = parameter_overrides(node)
     declared = sorted(declared)
     groups = {name.split('.')[0] + '.' for name in declared if '.' in name}
     for name in sorted(overrides):
@@ -181,8 +182,7 @@ def check_bitrate(interface: str, bitrate: int) -> Optional[str]:
     if not bitrate:
         return None
     if interface == 'slcan':
-        from can.interfaces.slcan import slcanBus
-        rates = sorted(slcanBus._BITRATES)  # python-can's own table of the slcan S commands
+        rates = slcan_bitrates()
     elif interface == 'pcan':
         from can.interfaces.pcan.basic import PCAN_BITRATES
         rates = sorted(PCAN_BITRATES)

@@ -1,8 +1,11 @@
-"""canopen's SDO client with the checks CiA 301 asks of a client and canopen 2.4.1 lacks.
+"""Everything the gateway adds to canopen 2.4.1, in one place, to be offered upstream.
 
-This is the one place where the gateway extends canopen's SDO client; canopen's transfer
-streams (expedited, segmented, block) are used unchanged on top of it. Each gap closed here
-is listed in the README so it can be offered upstream:
+canopen's own classes and transfer streams are used; where they fall short for a gateway
+that must give every request exactly one right answer, they are extended here and nowhere
+else. Each gap is listed in the README's "Library gaps worked around".
+
+The SDO client (:class:`StrictSdoClient`, one transfer at a time, with the checks CiA 301
+asks of a client):
 
 1. Responses are matched to their request: command specifier, index and subindex, toggle
    bit, block sequence answers. canopen checks the multiplexer of upload and block
@@ -10,7 +13,11 @@ is listed in the README so it can be offered upstream:
    taken as success. Frames for another object are ignored; wrong toggles or command
    specifiers end the transfer with the right abort code, sent on the bus.
 2. No frame that arrived before a request was sent counts for it (canopen kept a late
-   answer in its queue when it arrived between a timeout and the next request).
+   answer in its queue when it arrived between a timeout and the next request). A
+   response's arrival is the moment the gateway's receive thread took it from the driver,
+   on the host's monotonic clock (``bus.py`` stamps every frame so and does nothing else on
+   that thread, so a slow handler or a burst does not delay the stamp), never the adapter's
+   timestamp: adapters' clocks are offset from the host's, by seconds on some, and drift.
 3. The caller's deadline bounds the whole transfer, not each frame.
 4. The first abort wins: once the device aborted (or the client did), nothing more is sent
    and the answer carries that first code (canopen sends another request after a device's
@@ -18,15 +25,23 @@ is listed in the README so it can be offered upstream:
 5. Frames shorter than the 8 bytes CiA 301 prescribes for SDO are ignored (canopen let
    ``struct.error`` escape for them), and aborts name the transfer's index and subindex.
 6. A transfer can be cancelled from another thread (bus down, shutdown); it ends at once.
+
+The transfer streams:
+
 7. canopen's segmented download stream is not closed once: after a failed transfer, garbage
    collection closes it again and it sends its end frame in the middle of a later transfer.
-   :class:`DownloadStream` closes once.
-   A stream whose initiation failed is closed silently too.
-8. A response's arrival is the moment the gateway's receive thread took it from the
-   driver, on the host's monotonic clock (``bus.py`` stamps every frame so and does nothing
-   else on that thread, so a slow handler or a burst does not delay the stamp), never the
-   adapter's timestamp: adapters' clocks are offset from the host's, by seconds on some,
-   and drift. A frame taken before the request was sent never answers it.
+   :class:`DownloadStream` closes once; a stream whose initiation failed closes silently,
+   and :func:`close_without_frames` ends any stream after a failure without its frames.
+8. A segment may carry no data and still announce more: only canopen's private ``_done``
+   tells the upload's end (:func:`upload_finished`).
+
+Elsewhere:
+
+9. A ``LocalNode`` starts a heartbeat producer when 0x1017 is written, also for a dictionary
+   that is on no bus (the gateway's own): :func:`without_heartbeat_producer`.
+10. ``EmcyConsumer`` keeps every EMCY it ever received in two lists (memory grows on a
+    long-running robot), and a frame shorter than 8 bytes raises ``struct.error`` into the
+    receive thread: :class:`EmcyDecoder` keeps the latest only and says "malformed".
 """
 
 import io
@@ -34,8 +49,10 @@ import queue
 import struct
 import threading
 import time
-from typing import Callable, Optional, Union
+from typing import Callable, Optional, Tuple, Union
 
+import canopen
+from canopen.emcy import EmcyConsumer, EmcyError
 from canopen.sdo.client import SdoClient, WritableStream
 from canopen.sdo.exceptions import SdoAbortedError
 
@@ -332,3 +349,52 @@ def _block_download_end(frame: bytes) -> Verdict:
     if frame[0] & 0xE3 != 0xA1:
         return abort_codes.UNKNOWN_COMMAND
     return None
+
+
+def close_without_frames(stream) -> None:
+    """Mark a canopen stream closed without its closing frames and log lines, now and later.
+
+    For a stream whose transfer already ended with an abort: its own ``close()`` would send
+    the end of the transfer (or log it), and garbage collection would call it again.
+    """
+    io.RawIOBase.close(stream)
+
+
+def upload_finished(stream) -> bool:
+    """Return whether the device has sent the last segment of the upload on ``stream``."""
+    return getattr(stream, '_done', True)
+
+
+def without_heartbeat_producer(node: canopen.LocalNode) -> canopen.LocalNode:
+    """Return ``node`` with no heartbeat producer behind its 0x1017 (a node on no bus)."""
+    node._write_callbacks.remove(node.nmt.on_write)
+    return node
+
+
+class MalformedEmcy(Exception):
+    """A frame on an EMCY COB-ID that is not an EMCY (CiA 301: 8 bytes)."""
+
+
+class EmcyDecoder:
+    """canopen's ``EmcyConsumer`` for one device, keeping only what is still needed."""
+
+    def __init__(self):
+        self._consumer = EmcyConsumer()
+
+    def decode(self, can_id: int, data: bytes, timestamp: float) -> Tuple[EmcyError, bool]:
+        """Decode one frame; return the EMCY and whether it is an active error.
+
+        Raises :class:`MalformedEmcy` for a frame shorter than an EMCY.
+        """
+        consumer = self._consumer
+        try:
+            consumer.on_emcy(can_id, data, timestamp)
+        except struct.error:
+            raise MalformedEmcy(f'{len(data)} bytes') from None
+        with consumer.emcy_received:
+            error = consumer.log[-1]
+            # An error reset has emptied the consumer's active list; any other EMCY is on it.
+            is_active = bool(consumer.active) and consumer.active[-1] is error
+            del consumer.log[:]
+            del consumer.active[:-1]
+        return error, is_active

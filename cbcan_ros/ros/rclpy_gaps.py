@@ -1,0 +1,75 @@
+"""Everything the gateway adds to rclpy 7.1.6 (Jazzy), in one place, to be offered upstream.
+
+Each function here reaches into rclpy where it offers no public way, and each gap is listed
+in the README's "Library gaps worked around":
+
+1. A service cannot answer later, from another thread (rclcpp has deferred responses):
+   :func:`intercept_responses` replaces the service's own ``send_response``, which rclpy's
+   executors (the default ones and ``EventsExecutor``) call with the request's header.
+2. Requests still waiting in a service's reader when the executor stops are never answered:
+   :func:`drain` takes them as the executors do and hands them to the callback.
+3. ``LifecycleNode`` raises for a transition the current state does not have (rclcpp answers
+   ``success: false``), which ends the executor: :func:`refuse_unavailable_transitions`.
+4. A parameter no node declares is silently ignored, and there is no public list of the
+   values a node was given: :func:`parameter_overrides`.
+"""
+
+from typing import Callable, Dict
+
+from rclpy.exceptions import InvalidHandle
+from rclpy.lifecycle import LifecycleNode
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+
+def intercept_responses(service, send_when_ready: Callable) -> Callable:
+    """Make ``service`` call ``send_when_ready(response, header)`` to answer a request.
+
+    Returns rclpy's own ``send_response(response, header)``, to send the answer with later.
+    """
+    send = service.send_response
+    service.send_response = send_when_ready
+    return send
+
+
+def drain(service) -> None:
+    """Hand each request still waiting in ``service`` (never taken) to its callback, once.
+
+    Called once the executor takes no more requests (shutdown) or is busy taking the service
+    away (cleanup): without it those callers would wait for ever. The request is taken as
+    rclpy's executors take it (``service.handle.service_take_request``).
+    """
+    while True:
+        try:
+            with service.handle:
+                request, header = service.handle.service_take_request(
+                    service.srv_type.Request)
+        except InvalidHandle:
+            return
+        if header is None:
+            return
+        service.send_response(service.callback(request, service.srv_type.Response()), header)
+
+
+def refuse_unavailable_transitions(node: LifecycleNode) -> None:
+    """Answer a transition the current state does not have ``success: false``, logged."""
+    change_state = node._service_change_state.callback
+    machine = node._state_machine
+
+    def checked(request, response):
+        transition = request.transition
+        available = {described[0] for described in machine.available_transitions}
+        if not transition.label and transition.id not in available:
+            node.get_logger().warning(
+                f'transition {transition.id} refused: state {machine.current_state[1]} '
+                f'has no such transition')
+            response.success = False
+            return response
+        return change_state(request, response)
+
+    node._service_change_state.callback = checked
+
+
+def parameter_overrides(node: Node) -> Dict[str, Parameter]:
+    """Return the parameter values ``node`` was given (-p, parameter files), declared or not."""
+    return getattr(node, '_parameter_overrides', {})
