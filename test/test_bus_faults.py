@@ -23,8 +23,10 @@ DEVICE_TYPE = struct.pack('<I', 0x00020192)
 BUS_LOGGER = 'cbcan_ros.core.bus'
 RECOVERY = 10.0  # backoff doubles up to 5 s; generous for a loaded CI machine
 PROMPT = 1.0     # "at once", with room for a loaded CI machine
-# Fatek CBCAN mailbox words (PLC_MAILBOX_FORMATS.md): the flag, SDO read, and result 4 = failed
+# Fatek CBCAN words (docs/plc_mailbox_formats.md): the flag, SDO read, result 4 = failed, and
+# the abort words (low, high) of 0x08000000, the code of a bus that went down
 MAILBOX_FLAG, MAILBOX_READ, MAILBOX_RESULT_FAILED = 0xCA0E, 5055, 4
+MAILBOX_BUS_DOWN = [0x0000, 0x0800]
 
 faulty_bus.register()
 
@@ -136,7 +138,8 @@ def test_mailbox_calls_waiting_when_the_bus_goes_down_are_answered_at_once(start
     answers = [wait_for_future(future, PROMPT + 1.0) for future in calls]
     assert time.monotonic() - started < PROMPT
     for answer in answers:
-        assert answer.registers[0] == MAILBOX_RESULT_FAILED, list(answer.registers[:8])
+        assert [answer.registers[0], *answer.registers[6:8]] == \
+            [MAILBOX_RESULT_FAILED, *MAILBOX_BUS_DOWN], list(answer.registers[:8])
     faults.clear()
     wait_for_recovery(gateway)
 

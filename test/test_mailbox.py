@@ -1,7 +1,9 @@
 """The PLC register mailbox (formats cbcan and me3can) through the ROS service.
 
-Every row of PLC_MAILBOX_FORMATS.md is checked against simulated devices 2, 3 and 5; every
-answer is compared register by register with the whole block the PLC would read back.
+Every rule of docs/plc_mailbox_formats.md is checked here against simulated devices 2, 3 and 5
+(write protection in test_write_protection.py, a bus going down in test_bus_faults.py); its code
+tables are checked against mailbox.py in test_mailbox_document_matches_code.py. Every answer is
+compared register by register with the whole block the PLC would read back.
 """
 
 import asyncio
@@ -181,6 +183,9 @@ def test_empty_format_is_cbcan(gateway):
     (cbcan(WRITE, index=0x2002, size=2, data=[1]), 0x06070010, 'TYPE_MISMATCH'),
     (cbcan(node=0, index=0x6000), 0x06020000, 'NOT_EXIST'),
     (cbcan(WRITE, node=0, index=0x1018, sub=2, data=[1, 2]), 0x06010002, 'READ_ONLY'),
+    # an SDO read of 0x1F82 and an SDO write to 0x300C are SDOs of the node, not NMT services
+    (cbcan(index=0x1F82, sub=128, fill=FILL), 0x06020000, 'NOT_EXIST'),
+    (cbcan(WRITE, index=0x300C, data=[1, 2]), 0x06020000, 'NOT_EXIST'),
     # no answer: ABORT_TIME_OUT
     (cbcan(node=9, fill=FILL), 0x05040000, 'TIMEOUT'),
     (cbcan(WRITE, node=9, data=[1, 2]), 0x05040000, 'TIMEOUT'),
@@ -291,16 +296,21 @@ def test_nmt_state_of_a_never_seen_node_is_not_detected(gateway):
     assert registers == [0, READ, 9, 0x300C, 0, 2, 6] + [0] * 63
 
 
-def test_nmt_state_of_a_node_seen_only_booting_is_pre_operational(gateway):
+@pytest.mark.parametrize('node, reported, answered', [
+    (20, 0, 127),  # seen only booting: after its boot-up message a node is pre-operational
+    (21, 0x42, 0x42),  # a state byte CiA 301 does not define is passed on as it is
+])
+def test_nmt_state_is_the_state_the_node_reported(gateway, node, reported, answered):
     bus = gateway.raw_bus()
     try:
-        bus.send(can.Message(arbitration_id=0x700 + 20, data=[0], is_extended_id=False))
-        wait_until(lambda: gateway.node.gateway.monitor.status(20).last_seen is not None,
-                   5.0, 'the boot-up message of node 20')
-        assert gateway.node.gateway.monitor.status(20).state == 0
-        registers, message = call(gateway, nmt_state_block(20))
+        bus.send(can.Message(arbitration_id=0x700 + node, data=[reported],
+                             is_extended_id=False))
+        wait_until(lambda: gateway.node.gateway.monitor.status(node).last_seen is not None,
+                   5.0, f'the heartbeat of node {node}')
+        assert gateway.node.gateway.monitor.status(node).state == reported
+        registers, message = call(gateway, nmt_state_block(node))
         assert message == ''
-        assert registers == [0, READ, 20, 0x300C, 0, 2, 127] + [0] * 63
+        assert registers == [0, READ, node, 0x300C, 0, 2, answered] + [0] * 63
     finally:
         bus.shutdown()
 

@@ -1,7 +1,7 @@
 """PLC register mailboxes: the register blocks of PLC CANopen master modules, on the gateway.
 
 A PLC program fills a block of 16-bit registers and triggers it; the gateway executes the block
-and hands it back as the module would. Two formats are kept (see PLC_MAILBOX_FORMATS.md):
+and hands it back as the module would. Two formats are kept (docs/plc_mailbox_formats.md):
 
 * ``cbcan``: Fatek FBs-CBCAN, R3700..R3769 (70 words), SDO read/write and NMT.
 * ``me3can``: Mitsubishi ME3CAN1-L command interface, buffer memory G1000..G1066 (67 words),
