@@ -11,12 +11,15 @@ import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import pytest
 
+from cbcan_ros.core import bus as bus_module
 from cbcan_ros.ros.diagnostics import DIAGNOSTICS_QOS
 from cbcan_ros.simulation.canopen_device import SimulatedDevice
 
 from conftest import new_channel, wait_until
 import faulty_bus
 from faulty_bus import FaultController
+
+UNUSED_ID = 0x7F0  # no CANopen service uses it: a handler there holds the dispatch
 
 EDS = str(pathlib.Path(__file__).resolve().parent.parent / 'config' / 'simulated_device.eds')
 OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR,
@@ -135,3 +138,27 @@ def test_error_frames_warn_and_a_bus_down_is_an_error(start_faulty):
     up = recorder.wait_for('cbcan: CAN bus', OK, timeout=10.0)
     assert values(up)['Reopen count'] == '1'
     recorder.wait_for('cbcan: node 2', OK, timeout=10.0)
+
+
+def test_frames_dropped_for_a_full_backlog_warn(start_faulty, monkeypatch):
+    monkeypatch.setattr(bus_module, 'DISPATCH_BACKLOG', 5)
+    harness, _faults, recorder = start_faulty()
+    recorder.wait_for('cbcan: CAN bus', OK)
+    entered, release = threading.Event(), threading.Event()
+
+    def hold(*_frame):
+        entered.set()
+        release.wait(10.0)
+    harness.node.gateway.network.subscribe(UNUSED_ID, hold)
+    raw = harness.raw_bus()
+    try:
+        raw.send(can.Message(arbitration_id=UNUSED_ID, data=b'\x00', is_extended_id=False))
+        wait_until(entered.is_set, 10.0, 'the dispatch held in a handler')
+        for _ in range(20):
+            raw.send(can.Message(arbitration_id=UNUSED_ID, data=b'\x01', is_extended_id=False))
+        warned = recorder.wait_for('cbcan: CAN bus', WARN)
+    finally:
+        release.set()
+        raw.shutdown()
+    assert 'dropped' in warned.message, describe(warned)
+    assert int(values(warned)['Frames dropped']) > 0, describe(warned)

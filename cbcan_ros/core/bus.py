@@ -35,9 +35,23 @@ FIRST_RETRY = 0.1
 MAX_RETRY = 5.0
 RECEIVE_POLL = 0.1  # how soon the receive thread notices a fault reported by a sender
 SEND_TIMEOUT = 0.2  # a transmit queue that does not drain is a fault, not a hang
+# Frames taken from the driver but not yet handed to canopen, at the most: more than a
+# second of a saturated 1 Mbit/s bus. Beyond it frames are dropped and counted, as a
+# driver's full receive buffer drops them, rather than held in memory without bound.
+DISPATCH_BACKLOG = 10_000
 
 # SocketCAN's error-frame class bit for bus-off (linux/can/error.h CAN_ERR_BUSOFF).
 CAN_ERR_BUSOFF = 0x40
+
+
+def wall_clock(stamp: float) -> float:
+    """Return the wall-clock time (``time.time()``) of a frame's ``stamp``.
+
+    Every frame reaches canopen's subscribers stamped with ``time.monotonic()`` when the
+    receive thread took it from the driver; this is that moment on the wall clock, for the
+    times shown to people and in ROS messages.
+    """
+    return time.time() - (time.monotonic() - stamp)
 
 
 def slcan_bitrates() -> List[int]:
@@ -64,6 +78,7 @@ class BusStatus:
     frames_received: int
     frames_sent: int
     error_frames: int
+    frames_dropped: int = 0  # received while DISPATCH_BACKLOG frames waited for canopen
 
 
 class _SupervisedBus:
@@ -108,6 +123,8 @@ class BusSupervisor:
         self._gate_reason = ''
         self._reopen_count = 0
         self._received = 0
+        self._dispatched = 0  # written by the dispatch thread only
+        self._dropped = 0
         self._sent = 0
         self._error_frames = 0
         self._listener_errors = set()
@@ -127,7 +144,7 @@ class BusSupervisor:
         """Return the bus state now."""
         with self._lock:
             return BusStatus(self._up, '' if self._up else self._reason, self._reopen_count,
-                             self._received, self._sent, self._error_frames)
+                             self._received, self._sent, self._error_frames, self._dropped)
 
     def start(self) -> None:
         """Open the bus (at once if possible) and keep it open from a thread of its own.
@@ -232,6 +249,14 @@ class BusSupervisor:
             # CANopen (CiA 301) uses 11-bit identifiers: extended frames are not for us.
             if message.is_remote_frame or message.is_extended_id:
                 continue
+            # Each counter has one writer (this thread, the dispatch thread): no lock.
+            if self._received - self._dispatched >= DISPATCH_BACKLOG:
+                self._dropped += 1
+                if self._dropped == 1:
+                    LOGGER.error('CAN bus %s: frames arrive faster than they can be handled; '
+                                 'frames beyond a backlog of %d are dropped (counted in the '
+                                 'bus status)', self.description, DISPATCH_BACKLOG)
+                continue
             self._received += 1
             frames.put((message.arbitration_id, message.data, stamp))
 
@@ -242,6 +267,7 @@ class BusSupervisor:
             frame = frames.get()
             if frame is None:
                 return
+            self._dispatched += 1
             try:
                 self._network.notify(*frame)
             except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest

@@ -96,6 +96,7 @@ class StrictSdoClient(SdoClient):
 
     def __init__(self, rx_cobid: int, tx_cobid: int, od):
         super().__init__(rx_cobid, tx_cobid, od)
+        self.responses: Optional[queue.Queue] = None  # a queue only while a transfer runs
         # Reentrant: garbage collection may finalize a stream inside a locked section.
         self._lock = threading.RLock()
         self._mux = (0, 0)
@@ -141,6 +142,9 @@ class StrictSdoClient(SdoClient):
                                   f'protocol error: {type(error).__name__}: {error}',
                                   on_bus=self._sent_any)
             raise first from error
+        finally:
+            # Between transfers nothing is waited for: frames are dropped, not kept.
+            self.responses = None
 
     def fail(self, code: int, detail: str, on_bus: bool = True) -> Exception:
         """End the transfer with ``code``, sent on the bus if ``on_bus``.
@@ -164,13 +168,17 @@ class StrictSdoClient(SdoClient):
             if self._cancelled is None:
                 self._cancelled = TransferCancelled(reason)
                 self._abort_on_cancel = abort_code
-        self.responses.put((time.monotonic(), _Cancel))
+        responses = self.responses
+        if responses is not None:
+            responses.put((time.monotonic(), _Cancel))
 
     # canopen calls these four from its transfer streams.
 
     def on_response(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Queue a response frame with ``timestamp``: when the receive path took it."""
-        self.responses.put((timestamp, bytes(data)))
+        responses = self.responses
+        if responses is not None:
+            responses.put((timestamp, bytes(data)))
 
     def send_request(self, request) -> None:
         """Send a request frame, unless the transfer has already ended."""

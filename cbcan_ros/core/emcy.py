@@ -12,11 +12,11 @@ ROS layer) hear of every EMCY as it arrives.
 from dataclasses import dataclass
 import logging
 import threading
-import time
 from typing import Callable, Dict, List, Optional
 
 from canopen.emcy import EmcyError
 
+from .bus import wall_clock
 from .canopen_gaps import EmcyDecoder, MalformedEmcy
 
 LOGGER = logging.getLogger(__name__)
@@ -125,8 +125,9 @@ class EmcyMonitor:
 
 
 def _emergency(node_id: int, error: EmcyError) -> Emergency:
-    return Emergency(node_id, error.code, error.register, bytes(error.data), time.time(),
-                     error.get_desc())
+    # canopen keeps the frame's stamp (when the bus thread took it) as the error's timestamp.
+    return Emergency(node_id, error.code, error.register, bytes(error.data),
+                     wall_clock(error.timestamp), error.get_desc())
 
 
 def _status(node_id: int, device: _Device) -> EmcyStatus:

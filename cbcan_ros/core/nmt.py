@@ -11,6 +11,8 @@ import threading
 import time
 from typing import Callable, Dict, Iterable, List, Optional
 
+from .bus import wall_clock
+
 HEARTBEAT_COB_BASE = 0x700
 
 BOOT_UP = 0
@@ -97,6 +99,7 @@ class HeartbeatMonitor:
         self._timeout = timeout
         self._nodes: Dict[int, _Entry] = {node_id: _Entry() for node_id in expected_nodes}
         self._listeners: List[Callable[[], None]] = []
+        self._lost_at = float('-inf')  # when the bus last went down (time.monotonic())
         self._changed = threading.Condition()
         self._running = False
         self._watcher = threading.Thread(target=self._watch, name='heartbeat-timeouts',
@@ -143,12 +146,15 @@ class HeartbeatMonitor:
         return NodeStatus(node_id, state, entry.last_wall, now - entry.last_monotonic,
                           entry.detected)
 
-    def _on_frame(self, can_id: int, data: bytearray, _timestamp: float) -> None:
+    def _on_frame(self, can_id: int, data: bytearray, stamp: float) -> None:
+        """Take a heartbeat, boot-up or guarding reply received at ``stamp`` (monotonic)."""
         if not data:
             return
         node_id = can_id - HEARTBEAT_COB_BASE
         state = data[0] & 0x7F  # bit 7 is the node guarding toggle bit
         with self._changed:
+            if stamp <= self._lost_at:
+                return  # heard before the bus went down: it says nothing of the node now
             entry = self._nodes.get(node_id)
             is_new = entry is None
             if is_new:
@@ -156,8 +162,8 @@ class HeartbeatMonitor:
             changed = is_new or not entry.detected or entry.state != state
             entry.state = state
             entry.detected = True
-            entry.last_monotonic = time.monotonic()
-            entry.last_wall = time.time()
+            entry.last_monotonic = stamp
+            entry.last_wall = wall_clock(stamp)
             if changed:
                 self._changed.notify_all()
         if changed:
@@ -166,6 +172,7 @@ class HeartbeatMonitor:
     def lose_all(self) -> None:
         """Report every node NOT_DETECTED (the bus is down: nothing can be heard)."""
         with self._changed:
+            self._lost_at = time.monotonic()
             lost = [entry for entry in self._nodes.values() if entry.detected]
             for entry in lost:
                 entry.detected = False

@@ -454,9 +454,12 @@ class SdoChannel:
             if job not in self._queue:
                 return  # running or answered: the transfer keeps its own deadline
             self._queue.remove(job)
-        self._resolve(job, job.failed(SdoResult.aborted(
+        self._resolve(job, job.failed(self._queued_too_long(job)))
+
+    def _queued_too_long(self, job: _Job) -> SdoResult:
+        return SdoResult.aborted(
             abort_codes.TIMEOUT, f'waited {job.timeout:g} s behind earlier requests to node '
-                                 f'{self.node_id}; nothing was sent')))
+                                 f'{self.node_id}; nothing was sent')
 
     def _work(self) -> None:
         while True:
@@ -467,7 +470,11 @@ class SdoChannel:
                     return
                 job = self._queue.popleft()
                 job.started = time.monotonic()
-            self._resolve(job, job.run(job.deadline))
+            if job.started >= job.deadline:
+                # Its time ran out in the queue; the deadline thread has not answered it yet.
+                self._resolve(job, job.failed(self._queued_too_long(job)))
+            else:
+                self._resolve(job, job.run(job.deadline))
             del job  # an idle worker must not keep its last request (and answer) alive
 
     def _resolve(self, job: _Job, result) -> None:

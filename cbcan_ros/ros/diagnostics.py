@@ -87,8 +87,13 @@ class Diagnostics:
         self._previous = (now, status)
         elapsed = max(now - then, 1e-6)
         errors = status.error_frames - before.error_frames
+        dropped = status.frames_dropped - before.frames_dropped
         if not status.up:
             level, message = ERROR, f'down: {status.reason}'
+        elif dropped:
+            level = WARN
+            message = (f'up; {dropped} frame{"s" * (dropped > 1)} dropped in the last '
+                       f'{elapsed:.1f} s: they came faster than the gateway handles them')
         elif errors:
             level = WARN
             message = f'up; {errors} error frame{"s" * (errors > 1)} in the last {elapsed:.1f} s'
@@ -105,6 +110,7 @@ class Diagnostics:
             'Frames received': status.frames_received,
             'Frames sent': status.frames_sent,
             'Error frames': status.error_frames,
+            'Frames dropped': status.frames_dropped,
         })
 
     def _device_statuses(self, bus_up: bool) -> List[DiagnosticStatus]:
