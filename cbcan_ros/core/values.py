@@ -173,3 +173,24 @@ def _shortest(number: float, code: str) -> float:
         if struct.pack(code, candidate) == stored:
             return candidate
     return number
+
+
+def encode(value: Value, value_type: str) -> bytes:
+    """Turn a Python value into the bytes to write as ``value_type``.
+
+    Numbers for the number types, text for ``str``, bytes for ``hex``; text is also taken
+    as the command line takes it (``'0x1A'`` for u8, ``'78 56 34 12'`` for hex). Raises
+    ValueError with a message for the user when the value does not fit the type.
+    """
+    if isinstance(value, str):
+        return encode_value([value], value_type)
+    if isinstance(value, (bytes, bytearray)) and value_type == 'hex':
+        return encode_value([bytes(value).hex()], value_type)
+    if isinstance(value, int) and not isinstance(value, bool) and value_type in INTEGER_TYPES:
+        return encode_value([str(value)], value_type)
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and (
+            value_type in FLOAT_TYPES):
+        return encode_value([repr(float(value))], value_type)
+    if value_type not in VALUE_TYPES:
+        raise ValueError(f'{value_type!r} is not a value type: allowed {" ".join(VALUE_TYPES)}')
+    raise ValueError(f'type {value_type} does not take {type(value).__name__} {value!r}')
