@@ -6,6 +6,7 @@ coroutines on the caller's executor (awaitable form), a blocking call inside a c
 the caller's executor, and the errors a caller sees.
 """
 
+import re
 import threading
 import uuid
 
@@ -13,6 +14,7 @@ import pytest
 import rclpy
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
+from cbcan_ros.core.values import decode_value, encode
 from cbcan_ros.ros.client import (
     GatewayClient,
     GatewayUnavailable,
@@ -175,3 +177,31 @@ def test_a_value_that_does_not_fit_is_refused_before_anything_is_sent(node):
             nowhere.write(5, 0x2001, 0, 256, type='u8')  # no GatewayUnavailable: not called
         with pytest.raises(GatewayUnavailable, match='no gateway at /nobody'):
             nowhere.read(5, 0x1000)
+
+
+@pytest.mark.parametrize('value, value_type, data, read_back', [
+    (-2, 'i32', b'\xfe\xff\xff\xff', -2),
+    (0x1234, 'u16', b'\x34\x12', 0x1234),
+    ('0x1234', 'u16', b'\x34\x12', 0x1234),  # text as cbcan_cli takes it
+    (-0.1, 'f32', b'\xcd\xcc\xcc\xbd', -0.1),
+    (2, 'f64', b'\x00\x00\x00\x00\x00\x00\x00\x40', 2.0),
+    ('robot', 'str', b'robot', 'robot'),
+    (b'\x78\x56', 'hex', b'\x78\x56', b'\x78\x56'),
+    ('78 56', 'hex', b'\x78\x56', b'\x78\x56'),
+])
+def test_python_values_are_written_and_read_as_their_type(value, value_type, data, read_back):
+    assert encode(value, value_type) == data
+    assert decode_value(data, value_type) == read_back
+
+
+@pytest.mark.parametrize('value, value_type, says', [
+    (256, 'u8', "'256' does not fit u8: allowed 0..255"),
+    (1.5, 'u8', 'type u8 does not take float 1.5'),
+    (True, 'u8', 'type u8 does not take bool True'),
+    (5, 'str', 'type str does not take int 5'),
+    (b'', 'hex', 'the value is empty'),
+    (5, 'u17', "'u17' is not a value type: allowed u8"),
+])
+def test_a_python_value_of_the_wrong_kind_is_refused_naming_it(value, value_type, says):
+    with pytest.raises(ValueError, match=re.escape(says)):
+        encode(value, value_type)

@@ -32,7 +32,7 @@ from rclpy.node import Node
 from rclpy.task import Future as RosFuture
 
 from ..core.sdo import MAX_TIMEOUT
-from ..core.values import decode_value, encode, Value
+from ..core.values import check_type, decode_value, encode, Value
 from ..msg import NodeStates, SdoAccess
 from ..srv import NmtCommand, NmtState, SdoBatch, SdoRead, SdoWrite
 from .interface import NODE_STATES_QOS, SERVICE_QOS
@@ -91,6 +91,9 @@ class Read:
     type: str = 'hex'
     max_size: int = 0
 
+    def __post_init__(self):
+        check_type(self.type)
+
     def access(self) -> SdoAccess:
         """Return the access as the service takes it."""
         return SdoAccess(node_id=self.node_id, index=self.index, subindex=self.subindex,
@@ -147,22 +150,26 @@ def _nothing(*_arguments) -> None:
     """Do nothing: a callback that is there to wake an executor when it is scheduled."""
 
 
+def _named(method, steps, suffix: str = ''):
+    """Give ``method`` the documentation of ``steps`` and its name without the underscore."""
+    functools.update_wrapper(method, steps)
+    method.__name__ = steps.__name__.lstrip('_') + suffix
+    method.__qualname__ = steps.__qualname__.replace(steps.__name__, method.__name__)
+    return method
+
+
 def _blocking(steps):
     """Return the blocking method that runs the generator method ``steps``."""
-    @functools.wraps(steps)
     def method(self, *args, **kwargs):
         return self._block(steps(self, *args, **kwargs))
-    method.__name__ = method.__qualname__ = steps.__name__.lstrip('_')
-    return method
+    return _named(method, steps)
 
 
 def _awaitable(steps):
     """Return the ``async`` method that runs the generator method ``steps``."""
-    @functools.wraps(steps)
     async def method(self, *args, **kwargs):
         return await self._await(steps(self, *args, **kwargs))
-    method.__name__ = method.__qualname__ = steps.__name__.lstrip('_') + '_async'
-    return method
+    return _named(method, steps, '_async')
 
 
 class GatewayClient:
@@ -297,7 +304,7 @@ class GatewayClient:
                     service_type, f'{self.gateway}/{service}', qos_profile=SERVICE_QOS)
             return self._clients[service]
 
-    def _exchange(self, service_type, service: str, request,
+    def _call(self, service_type, service: str, request,
                   answer_within: Optional[float] = None):
         """Call ``gateway/service`` and return the response, whatever it says."""
         client = self._client(service_type, service)
@@ -313,8 +320,8 @@ class GatewayClient:
                                      f'{within:g} s')
         return future.result()
 
-    call = _blocking(_exchange)
-    call_async = _awaitable(_exchange)
+    call = _blocking(_call)
+    call_async = _awaitable(_call)
 
     def _read(self, node_id: int, index: int, subindex: int = 0, type: str = 'hex',
               timeout: float = 0.0, max_size: int = 0):
@@ -322,7 +329,8 @@ class GatewayClient:
 
         ``timeout``: seconds for the SDO, 0 = the gateway's ``sdo.timeout``.
         """
-        response = yield from self._exchange(SdoRead, 'sdo_read', SdoRead.Request(
+        check_type(type)
+        response = yield from self._call(SdoRead, 'sdo_read', SdoRead.Request(
             node_id=node_id, index=index, subindex=subindex, max_size=max_size,
             timeout=float(timeout)), answer_within(timeout))
         what = f'read {_object(node_id, index, subindex)}'
@@ -341,7 +349,7 @@ class GatewayClient:
             data = encode(value, type)
         except ValueError as error:
             raise ValueError(f'{what}: {error}') from None
-        response = yield from self._exchange(SdoWrite, 'sdo_write', SdoWrite.Request(
+        response = yield from self._call(SdoWrite, 'sdo_write', SdoWrite.Request(
             node_id=node_id, index=index, subindex=subindex, data=list(data),
             timeout=float(timeout)), answer_within(timeout))
         if not response.success:
@@ -359,7 +367,7 @@ class GatewayClient:
         """
         messages = [item if isinstance(item, SdoAccess) else item.access()
                     for item in accesses]
-        response = yield from self._exchange(SdoBatch, 'sdo_batch', SdoBatch.Request(
+        response = yield from self._call(SdoBatch, 'sdo_batch', SdoBatch.Request(
             accesses=messages, timeout=float(timeout)), answer_within(timeout))
         results = []
         for item, answer in zip(accesses, response.results, strict=True):
@@ -382,7 +390,7 @@ class GatewayClient:
         if isinstance(code, str):
             raise ValueError(f'{command!r} is not an NMT command: use '
                              f'{", ".join(NMT_COMMANDS)} or its number')
-        response = yield from self._exchange(NmtCommand, 'nmt_command', NmtCommand.Request(
+        response = yield from self._call(NmtCommand, 'nmt_command', NmtCommand.Request(
             node_id=node_id, command=code))
         if not response.success:
             raise RequestFailed(f'NMT command {command} to node {node_id}', response)
@@ -396,7 +404,7 @@ class GatewayClient:
         Its ``state_name`` (e.g. ``OPERATIONAL``), ``state`` and ``last_seen_age`` (s; -1:
         never heard).
         """
-        response = yield from self._exchange(NmtState, 'nmt_state', NmtState.Request(
+        response = yield from self._call(NmtState, 'nmt_state', NmtState.Request(
             node_id=node_id))
         if not response.success:
             raise RequestFailed(f'state of node {node_id}', response)
