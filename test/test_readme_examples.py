@@ -31,6 +31,7 @@ from rclpy.node import Node
 import yaml
 
 from cbcan_ros.ros.cli import build_parser, Client, DEFAULT_GATEWAY, run
+from cbcan_ros.ros.client import GatewayError
 from cbcan_ros.ros.config import NodeParameters
 from cbcan_ros.ros.diagnostics import DIAGNOSTICS_QOS
 
@@ -209,14 +210,24 @@ def gateway(tmp_path_factory):
     assert len(named) == 1, [str(block) for block in named]
     parameters = parameter_file(named[0], folder)
     process = NodeProcess([*make_run_arguments(), '--params-file', str(parameters)])
-    yield process, str(folder / 'drive_5.eds')
-    process.close()
+    try:
+        yield process, str(folder / 'drive_5.eds')
+    finally:
+        process.close()
 
 
 @pytest.fixture(scope='module')
 def cli_client(gateway):
-    """Yield one cbcan_cli client of the gateway (each new one takes 1-2 s to find it)."""
+    """Yield one cbcan_cli client of the gateway, once it answers.
+
+    The examples then wait only for their own discovery (1-2 s), not for the gateway's start.
+    """
     client = Client(DEFAULT_GATEWAY, START_TIMEOUT)
+    try:
+        client.state(5)
+    except GatewayError as error:
+        client.close()
+        raise AssertionError(f'{error}\ncbcan_node output:\n{gateway[0].output()}') from None
     yield client
     client.close()
 
@@ -227,7 +238,7 @@ def expected_lines(script: str) -> List[str]:
 
 
 @pytest.mark.parametrize('block', blocks_of('python'), ids=lambda block: f'line{block.line}')
-def test_python_examples_run_as_printed(gateway, block, tmp_path):
+def test_python_examples_run_as_printed(gateway, cli_client, block, tmp_path):
     script = tmp_path / 'example.py'
     script.write_text(block.text)
     finished = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
@@ -263,7 +274,8 @@ def test_cli_examples_run_as_printed(gateway, cli_client, capsys, monkeypatch):
     assert ran >= 10, f'only {ran} cbcan_cli commands found in the README'
 
 
-def test_diagnostic_aggregator_example_names_what_the_gateway_publishes(gateway, client_node):
+def test_diagnostic_aggregator_example_names_what_the_gateway_publishes(gateway, cli_client,
+                                                                      client_node):
     blocks = blocks_of('aggregator')
     assert len(blocks) == 1, [str(block) for block in blocks]
     groups = yaml.safe_load(blocks[0].text)['analyzers']['ros__parameters']['can']['analyzers']
