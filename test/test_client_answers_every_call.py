@@ -149,6 +149,23 @@ def test_a_blocking_call_inside_a_callback_of_the_callers_executor_is_answered(c
     assert set(DEVICES) <= set(answers[1]), answers[1]
 
 
+def test_subscribed_node_states_arrive_on_the_callers_executor(client, node):
+    seen = []
+    client.subscribe_states(lambda message: seen.append(
+        (threading.current_thread(), {state.node_id for state in message.nodes})))
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        wait_until(lambda: any(set(DEVICES) <= nodes for _thread, nodes in seen),
+                   ANSWER_WAIT, f'node states listing devices {DEVICES} (seen {seen})')
+    finally:
+        executor.shutdown(timeout_sec=2.0)
+        spinner.join(5.0)
+    assert {thread for thread, _nodes in seen} == {spinner}
+
+
 def test_a_refusal_raises_with_the_abort_code_and_a_batch_answers_every_access(client):
     with pytest.raises(RequestFailed) as refused:
         client.read(5, 0x6000)
@@ -177,6 +194,24 @@ def test_a_value_that_does_not_fit_is_refused_before_anything_is_sent(node):
             nowhere.write(5, 0x2001, 0, 256, type='u8')  # no GatewayUnavailable: not called
         with pytest.raises(GatewayUnavailable, match='no gateway at /nobody'):
             nowhere.read(5, 0x1000)
+
+
+def test_closing_the_client_answers_the_calls_still_waiting(node):
+    nowhere = GatewayClient(node, f'/nobody{uuid.uuid4().hex[:8]}/cbcan', wait=ANSWER_WAIT)
+    answers = []
+
+    def call() -> None:
+        try:
+            nowhere.read(5, 0x1000)
+        except GatewayUnavailable as error:
+            answers.append(str(error))
+
+    caller = threading.Thread(target=call)
+    caller.start()
+    wait_until(lambda: nowhere._watches, 5.0, 'the call to wait for the gateway')
+    nowhere.close()
+    caller.join(5.0)  # far less than the call's wait
+    assert answers == ['the client is closed'], answers
 
 
 @pytest.mark.parametrize('value, value_type, data, read_back', [

@@ -42,8 +42,8 @@ DEFAULT_WAIT = 5.0
 # Seconds an answer may take beyond the SDO timeout of the request (a segmented transfer of
 # a large object takes many SDO round trips, each with its own timeout).
 ANSWER_MARGIN = 30.0
-# How often the client's thread looks at deadlines and newly found services when nothing
-# else wakes it.
+# How often the client's thread looks at deadlines and newly found services while calls
+# wait and nothing else wakes it.
 POLL = 0.1
 
 NMT_COMMANDS = {
@@ -192,7 +192,8 @@ class GatewayClient:
         self._lock = threading.Lock()
         # (condition, its future, deadline): looked at by the thread after each spin.
         self._watches = []
-        self._stopped = False
+        self._stopped = False  # the thread ends, or has ended
+        self._closed = False
         self._wake = self._own.create_guard_condition(_nothing)
         self._executor = SingleThreadedExecutor(context=node.context)
         self._executor.add_node(self._own)
@@ -209,9 +210,12 @@ class GatewayClient:
     def close(self) -> None:
         """Stop the client's thread and destroy its node; waiting calls fail at once."""
         with self._lock:
-            self._stopped = True
-        self._wake.trigger()
-        self._spinner.join()
+            if self._closed:
+                return
+            self._closed = self._stopped = True
+        if self._spinner.is_alive():
+            self._wake.trigger()
+            self._spinner.join()
         self._executor.shutdown(timeout_sec=1.0)
         self._own.destroy_node()
 
@@ -229,10 +233,12 @@ class GatewayClient:
         reason = 'the client is closed'
         try:
             while not self._stopped:
-                self._executor.spin_once(timeout_sec=POLL)
+                # Deadlines need looking at; without any, only an event (an answer, a new
+                # call, close) can change something, and each wakes the executor.
+                self._executor.spin_once(timeout_sec=POLL if self._watches else None)
                 self._settle(time.monotonic())
         except Exception as error:  # rclpy shut down under the client: fail every caller
-            reason = f'the client stopped: {type(error).__name__}: {error}'
+            reason = f'the client stopped: {error!r}'
         with self._lock:
             self._stopped = True
             watches, self._watches = self._watches, []
