@@ -58,6 +58,7 @@ from .client import (
     answer_within,
     DEFAULT_GATEWAY,
     DEFAULT_WAIT,
+    describe,
     GatewayClient,
     GatewayUnavailable,
     NMT_COMMANDS,
@@ -208,9 +209,10 @@ class Client(GatewayClient):
         return parameter_value_to_python(response.values[0]) if response.values else None
 
 
-def _failed(error: RequestFailed) -> int:
+def _failed(response) -> int:
     """Print what the gateway refused: the abort code, its name and meaning, or why."""
-    print(f'error: {"SDO abort " if error.abort_code else ""}{error.detail}', file=sys.stderr)
+    kind = 'SDO abort ' if getattr(response, 'abort_code', 0) else ''
+    print(f'error: {kind}{describe(response)}', file=sys.stderr)
     return 1
 
 
@@ -566,7 +568,7 @@ def run(client: Client, args: argparse.Namespace) -> int:
     try:
         return args.run(client, args)
     except RequestFailed as error:
-        return _failed(error)
+        return _failed(error.response)
     except (GatewayUnavailable, UsageError) as error:
         print(f'error: {error}', file=sys.stderr)
         return 2

@@ -74,11 +74,17 @@ class RequestFailed(GatewayError):
         self.response = response
         self.abort_code = getattr(response, 'abort_code', 0)
         self.message = response.message
-        code = f'0x{self.abort_code:08X}'
-        # The gateway's message names the code already ("0x06020000 NOT_EXIST: ...").
-        self.detail = (f'{code}: {self.message}'
-                       if self.abort_code and code not in self.message else self.message)
+        self.detail = describe(response)
         super().__init__(f'{what}: {self.detail}')
+
+
+def describe(response) -> str:
+    """Return what an answer with ``success: false`` says: its message, with its abort code."""
+    abort_code = getattr(response, 'abort_code', 0)
+    code = f'0x{abort_code:08X}'
+    # The gateway's message names the code already ("0x06020000 NOT_EXIST: ...").
+    return f'{code}: {response.message}' if abort_code and code not in response.message else (
+        response.message)
 
 
 @dataclass(frozen=True)
@@ -455,4 +461,4 @@ def _hand_over(waiter: RosFuture, waited: ThreadFuture) -> None:
 
 
 __all__ = ['GatewayClient', 'GatewayError', 'GatewayUnavailable', 'NMT_COMMANDS', 'Read',
-           'RequestFailed', 'Result', 'Write', 'answer_within']
+           'RequestFailed', 'Result', 'Write', 'answer_within', 'describe']
