@@ -118,8 +118,9 @@ class Write:
 
     def access(self) -> SdoAccess:
         """Return the access as the service takes it; ValueError if the value does not fit."""
+        what = f'write {_object(self.node_id, self.index, self.subindex)}'
         return SdoAccess(node_id=self.node_id, index=self.index, subindex=self.subindex,
-                         write=True, data=list(encode(self.value, self.type)))
+                         write=True, data=list(_encoded(self.value, self.type, what)))
 
 
 class Result(NamedTuple):
@@ -143,6 +144,13 @@ def answer_within(timeout: float) -> float:
 
 def _object(node_id: int, index: int, subindex: int) -> str:
     return f'node {node_id} object 0x{index:04X}:{subindex:02X}'
+
+
+def _encoded(value: Value, value_type: str, what: str) -> bytes:
+    try:
+        return encode(value, value_type)
+    except ValueError as error:
+        raise ValueError(f'{what}: {error}') from None
 
 
 def _decoded(data: bytes, value_type: str, what: str) -> Value:
@@ -357,10 +365,7 @@ class GatewayClient:
                timeout: float = 0.0):
         """Write ``value`` as ``type`` to an object (``hex``: bytes, or hex text)."""
         what = f'write {_object(node_id, index, subindex)}'
-        try:
-            data = encode(value, type)
-        except ValueError as error:
-            raise ValueError(f'{what}: {error}') from None
+        data = _encoded(value, type, what)
         response = yield from self._call(SdoWrite, 'sdo_write', SdoWrite.Request(
             node_id=node_id, index=index, subindex=subindex, data=list(data),
             timeout=float(timeout)), answer_within(timeout))
