@@ -26,6 +26,9 @@ from cbcan_ros.ros.client import (
 from conftest import new_channel, wait_until
 from node_process import NodeProcess, START_TIMEOUT
 
+# One worker runs the module, so its gateway starts once.
+pytestmark = pytest.mark.xdist_group('python_client')
+
 DEVICES = list(range(2, 10))
 BURST = 200
 DEVICE_TYPE = 0x00020192  # 0x1000 of every simulated device

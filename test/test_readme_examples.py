@@ -38,6 +38,9 @@ from cbcan_ros.ros.diagnostics import DIAGNOSTICS_QOS
 from conftest import wait_until
 from node_process import EDS, NodeProcess, ROOT, START_TIMEOUT
 
+# One worker runs the module, so its gateway starts once.
+pytestmark = pytest.mark.xdist_group('readme')
+
 README = ROOT / 'README.md'
 # What the aggregator example names the gateway's status items after.
 AGGREGATOR_GATEWAY = '/can0/cbcan'
