@@ -69,6 +69,13 @@ def parse_integer(text: str) -> int:
         raise ValueError(f'{quoted(text)} is not a number (decimal, or hex as 0x1A2B)') from None
 
 
+def check_type(value_type: str) -> None:
+    """Raise ValueError naming the allowed types when ``value_type`` is none of them."""
+    if value_type not in VALUE_TYPES:
+        raise ValueError(f'{quoted(str(value_type))} is not a value type: allowed '
+                         f'{" ".join(VALUE_TYPES)}')
+
+
 def size_of(value_type: str) -> Optional[int]:
     """Return the bytes a value of ``value_type`` takes, or None when any size fits."""
     if value_type in INTEGER_TYPES:
@@ -92,6 +99,7 @@ def encode_value(words: Sequence[str], value_type: str) -> bytes:
 
     Raises ValueError with a message for the user when the value does not fit the type.
     """
+    check_type(value_type)
     if value_type == 'str':
         data = ' '.join(words).encode('utf-8')
     elif value_type == 'hex':
@@ -113,6 +121,7 @@ def decode_value(data: bytes, value_type: str) -> Value:
 
     Raises ValueError naming the type and the number of bytes when they do not fit.
     """
+    check_type(value_type)
     size = size_of(value_type)
     if size is not None and len(data) != size:
         raise ValueError(f'type {value_type} takes {size} byte{"" if size == 1 else "s"}, '
@@ -173,3 +182,23 @@ def _shortest(number: float, code: str) -> float:
         if struct.pack(code, candidate) == stored:
             return candidate
     return number
+
+
+def encode(value: Value, value_type: str) -> bytes:
+    """Turn a Python value into the bytes to write as ``value_type``.
+
+    Numbers for the number types, text for ``str``, bytes for ``hex``; text is also taken
+    as the command line takes it (``'0x1A'`` for u8, ``'78 56 34 12'`` for hex). Raises
+    ValueError with a message for the user when the value does not fit the type.
+    """
+    if isinstance(value, str):
+        return encode_value([value], value_type)
+    if isinstance(value, (bytes, bytearray)) and value_type == 'hex':
+        return encode_value([bytes(value).hex()], value_type)
+    if isinstance(value, int) and not isinstance(value, bool) and value_type in INTEGER_TYPES:
+        return encode_value([str(value)], value_type)
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and (
+            value_type in FLOAT_TYPES):
+        return encode_value([repr(float(value))], value_type)
+    check_type(value_type)
+    raise ValueError(f'type {value_type} does not take {type(value).__name__} {value!r}')

@@ -36,7 +36,6 @@ from typing import List, Optional, Sequence, Tuple
 from canopen.objectdictionary import ObjectDictionary, ODVariable
 from rcl_interfaces.srv import GetParameters
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import parameter_value_to_python
 
 from ..core import eds
@@ -52,30 +51,23 @@ from ..core.values import (
     type_of,
     VALUE_TYPES,
 )
-from ..msg import NodeStates, SdoAccess
+from ..msg import SdoAccess
 from ..plc.mailbox import Cbcan, Me3can
-from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
+from ..srv import RegisterMailbox
+from .client import (
+    answer_within,
+    DEFAULT_GATEWAY,
+    DEFAULT_WAIT,
+    describe,
+    GatewayClient,
+    GatewayUnavailable,
+    NMT_COMMANDS,
+    RequestFailed,
+)
 from .config import device_file_parameter
-from .interface import NODE_STATES_QOS, SERVICE_QOS
 
-DEFAULT_GATEWAY = '/can0/cbcan'
-DEFAULT_WAIT = 5.0
-# Seconds an answer may take beyond the SDO timeout of the request (a segmented transfer of
-# a large object takes many SDO round trips, each with its own timeout).
-ANSWER_MARGIN = 30.0
 # Bytes of a written value echoed in the confirmation.
 SHOWN_BYTES = 16
-
-NMT_COMMANDS = {
-    'start': NmtCommand.Request.START,
-    'stop': NmtCommand.Request.STOP,
-    'preop': NmtCommand.Request.ENTER_PRE_OPERATIONAL,
-    'reset': NmtCommand.Request.RESET_NODE,
-    'reset-comm': NmtCommand.Request.RESET_COMMUNICATION,
-}
-
-class GatewayUnavailable(Exception):
-    """No gateway answers: it is not running, not discovered, or did not reply in time."""
 
 
 class UsageError(Exception):
@@ -193,45 +185,22 @@ def describe_typed(data: bytes, value_type: str) -> List[str]:
     return lines
 
 
-class Client:
-    """One rclpy node in a private context, calling the services of one gateway."""
+class Client(GatewayClient):
+    """The gateway's client on a node of its own, in a private context (one per CLI run)."""
 
     def __init__(self, gateway: str, wait: float):
-        self.gateway = gateway
-        self.wait = wait
         self._context = rclpy.Context()
         rclpy.init(args=[], context=self._context)
-        self._node = rclpy.create_node('cbcan_cli', context=self._context,
-                                       start_parameter_services=False,
-                                       enable_rosout=False)
-        self._executor = SingleThreadedExecutor(context=self._context)
-        self._executor.add_node(self._node)
+        self._cli_node = rclpy.create_node('cbcan_cli', context=self._context,
+                                           start_parameter_services=False,
+                                           enable_rosout=False)
+        super().__init__(self._cli_node, gateway, wait)
 
     def close(self) -> None:
-        """Destroy the node and shut the private context down."""
-        self._executor.shutdown(timeout_sec=1.0)
-        self._node.destroy_node()
+        """Close the client, destroy the node and shut the private context down."""
+        super().close()
+        self._cli_node.destroy_node()
         rclpy.try_shutdown(context=self._context)
-
-    def missing(self) -> GatewayUnavailable:
-        """Return the error for a gateway that cannot be found."""
-        return GatewayUnavailable(f'no gateway at {self.gateway}: is cbcan_node running? '
-                                  f'(waited {self.wait:g} s; check --gateway and '
-                                  f'ROS_DOMAIN_ID)')
-
-    def call(self, service_type, service: str, request, answer_within: float):
-        """Call ``gateway/service`` and return the response; raise GatewayUnavailable."""
-        client = self._node.create_client(service_type, f'{self.gateway}/{service}',
-                                          qos_profile=SERVICE_QOS)
-        if not client.wait_for_service(timeout_sec=self.wait):
-            raise self.missing()
-        future = client.call_async(request)
-        self._executor.spin_until_future_complete(future, timeout_sec=answer_within)
-        if not future.done():
-            future.cancel()
-            raise GatewayUnavailable(
-                f'{self.gateway}/{service} did not answer within {answer_within:g} s')
-        return future.result()
 
     def parameter(self, name: str):
         """Return the value of the gateway's parameter ``name``; None if it has none."""
@@ -239,33 +208,11 @@ class Client:
             names=[name]), self.wait)
         return parameter_value_to_python(response.values[0]) if response.values else None
 
-    def receive_states(self):
-        """Return one NodeStates message from the latched ``node_states`` topic."""
-        received = []
-        self._node.create_subscription(NodeStates, f'{self.gateway}/node_states',
-                                       received.append, NODE_STATES_QOS)
-        deadline = time.monotonic() + self.wait
-        while not received:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise self.missing()
-            self._executor.spin_once(timeout_sec=min(remaining, 0.1))
-        return received[-1]
-
-
-def _answer_within(timeout: float) -> float:
-    return (timeout or MAX_TIMEOUT) + ANSWER_MARGIN
-
 
 def _failed(response) -> int:
-    if response.abort_code:
-        code = f'0x{response.abort_code:08X}'
-        # The gateway's message names the code already ("0x06020000 NOT_EXIST: ...").
-        detail = response.message if code in response.message else (
-            f'{code}: {response.message}')
-        print(f'error: SDO abort {detail}', file=sys.stderr)
-    else:
-        print(f'error: {response.message}', file=sys.stderr)
+    """Print what the gateway refused: the abort code, its name and meaning, or why."""
+    kind = 'SDO abort ' if getattr(response, 'abort_code', 0) else ''
+    print(f'error: {kind}{describe(response)}', file=sys.stderr)
     return 1
 
 
@@ -365,12 +312,8 @@ def cmd_sdo_read(client: Client, args) -> int:
     if extra:
         raise UsageError(f'{target.variable.qualname!r} is one value (0x{target.index:04X}:'
                          f'{target.subindex:02X}): give no sub-index after its name')
-    response = client.call(SdoRead, 'sdo_read', SdoRead.Request(
-        node_id=target.node, index=target.index, subindex=target.subindex,
-        max_size=args.max_size, timeout=args.timeout), _answer_within(args.timeout))
-    if not response.success:
-        return _failed(response)
-    data = bytes(response.data)
+    data = client.read(target.node, target.index, target.subindex, max_size=args.max_size,
+                       timeout=args.timeout)
     value_type = _value_type(args, target)
     if target.variable:
         print(f'object: {target.variable.qualname} = 0x{target.index:04X}:'
@@ -398,11 +341,7 @@ def cmd_sdo_write(client: Client, args) -> int:
         data = encode_value(value, _value_type(args, target) or 'hex')
     except ValueError as error:
         raise UsageError(f'{target}: {error}') from None
-    response = client.call(SdoWrite, 'sdo_write', SdoWrite.Request(
-        node_id=target.node, index=target.index, subindex=target.subindex,
-        data=list(data), timeout=args.timeout), _answer_within(args.timeout))
-    if not response.success:
-        return _failed(response)
+    client.write(target.node, target.index, target.subindex, data, timeout=args.timeout)
     shown = data[:SHOWN_BYTES].hex(' ').upper() + (' ...' if len(data) > SHOWN_BYTES else '')
     print(f'ok: wrote {len(data)} byte{"" if len(data) == 1 else "s"} ({shown}) to {target}')
     return 0
@@ -444,14 +383,13 @@ def cmd_sdo_batch(client: Client, args) -> int:
     if not accesses:
         print('error: no accesses: give them as arguments or with --file', file=sys.stderr)
         return 2
-    response = client.call(SdoBatch, 'sdo_batch', SdoBatch.Request(
-        accesses=accesses, timeout=args.timeout), _answer_within(args.timeout))
+    results = client.batch(accesses, timeout=args.timeout)
     failed = 0
-    for number, (access, result) in enumerate(zip(accesses, response.results, strict=True), 1):
+    for number, (access, result) in enumerate(zip(accesses, results, strict=True), 1):
         what = (f'{number:>4} {"write" if access.write else "read "} node {access.node_id} '
                 f'0x{access.index:04X}:{access.subindex:02X}')
         if result.success:
-            data = bytes(result.data)
+            data = result.data
             print(f'{what}  ok  {data.hex(" ").upper()}' if data else f'{what}  ok')
         else:
             failed += 1
@@ -461,11 +399,7 @@ def cmd_sdo_batch(client: Client, args) -> int:
 
 def cmd_nmt(client: Client, args) -> int:
     """Send an NMT command."""
-    response = client.call(NmtCommand, 'nmt_command', NmtCommand.Request(
-        node_id=args.node, command=args.command), client.wait + ANSWER_MARGIN)
-    if not response.success:
-        print(f'error: {response.message}', file=sys.stderr)
-        return 1
+    client.nmt(args.node, args.command)
     target = 'all nodes' if args.node == 0 else f'node {args.node}'
     print(f'ok: sent NMT command {args.command} to {target}')
     return 0
@@ -477,18 +411,14 @@ def _age(seconds: float) -> str:
 
 def cmd_state(client: Client, args) -> int:
     """Print a node's NMT state as last reported by the node."""
-    response = client.call(NmtState, 'nmt_state', NmtState.Request(node_id=args.node),
-                           client.wait + ANSWER_MARGIN)
-    if not response.success:
-        print(f'error: {response.message}', file=sys.stderr)
-        return 1
+    response = client.state(args.node)
     print(f'node {args.node}: {response.state_name} (last seen {_age(response.last_seen_age)})')
     return 0
 
 
 def cmd_states(client: Client, args) -> int:
     """Print the table of every known node's state from the node_states topic."""
-    message = client.receive_states()
+    message = client.node_states()
     if not message.nodes:
         print('no nodes known (none expected, none heard)')
         return 0
@@ -511,7 +441,7 @@ def cmd_mailbox(client: Client, args) -> int:
     if length and len(words) < length:
         words += [0] * (length - len(words))  # the unwritten registers of the PLC are 0
     response = client.call(RegisterMailbox, 'plc_mailbox', RegisterMailbox.Request(
-        format=args.format, registers=words), _answer_within(0.0))
+        format=args.format, registers=words), answer_within(0.0))
     words = list(response.registers)
     for offset in range(0, len(words), 8):
         row = words[offset:offset + 8]
@@ -633,15 +563,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _gateway_name(name: str) -> str:
-    name = name.strip().rstrip('/')
-    return name if name.startswith('/') else f'/{name}'
-
-
 def run(client: Client, args: argparse.Namespace) -> int:
     """Run one parsed command through ``client`` (several may share one); return the status."""
     try:
         return args.run(client, args)
+    except RequestFailed as error:
+        return _failed(error.response)
     except (GatewayUnavailable, UsageError) as error:
         print(f'error: {error}', file=sys.stderr)
         return 2
@@ -652,7 +579,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     client = None
     try:
-        client = Client(_gateway_name(args.gateway), args.wait)
+        client = Client(args.gateway, args.wait)
         return run(client, args)
     except KeyboardInterrupt:
         return 130

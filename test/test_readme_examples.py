@@ -1,0 +1,302 @@
+"""Every code block of README.md that can run here runs, as printed; the others say why not.
+
+Each fenced block is one of:
+- ``python``: run as a script in its own process against the gateway ``make run`` starts;
+  every ``# -> TEXT`` comment is a line the script must print, in that order (``# e.g.``
+  comments show output that varies);
+- ``bash`` whose every command is ``make run``, ``make cli ARGS="..."`` or ``cbcan_cli ...``:
+  run against that gateway (``make cli`` as the ``cbcan_cli`` it runs); a block written as a
+  terminal session (``$ cbcan_cli ...`` and the lines it prints) must print exactly those
+  lines;
+- ``yaml``: gateway parameters are checked as the gateway checks its parameters at start
+  (it refuses a name it does not declare), and the one naming node 5's EDS is given to that
+  gateway; the diagnostic_aggregator configuration must name the status items the gateway
+  publishes;
+- listed in ``NOT_RUN`` with the reason it cannot run here.
+A block that is none of these fails the test, so a new block is run or listed.
+"""
+
+from dataclasses import dataclass
+import pathlib
+import re
+import shlex
+import subprocess
+import sys
+import threading
+from typing import Dict, List, Tuple
+
+from diagnostic_msgs.msg import DiagnosticArray
+import pytest
+from rclpy.node import Node
+import yaml
+
+from cbcan_ros.ros.cli import build_parser, Client, DEFAULT_GATEWAY, run
+from cbcan_ros.ros.client import GatewayError
+from cbcan_ros.ros.config import NodeParameters
+from cbcan_ros.ros.diagnostics import DIAGNOSTICS_QOS
+
+from conftest import wait_until
+from node_process import EDS, NodeProcess, ROOT, START_TIMEOUT
+
+# One worker runs the module, so its gateway starts once.
+pytestmark = pytest.mark.xdist_group('readme')
+
+README = ROOT / 'README.md'
+# What the aggregator example names the gateway's status items after.
+AGGREGATOR_GATEWAY = '/can0/cbcan'
+# The EDS path the README's parameter example gives; the test puts a copy of
+# config/simulated_device.eds at a path of its own and reads the README with that path.
+README_EDS = '/home/robot/eds/drive_5.eds'
+SCRIPT_TIMEOUT = 120.0
+
+# A piece of the block that names it: why it does not run here.
+NOT_RUN = {
+    'git clone <this repository>': 'a ROS 2 workspace: rosdep, colcon on a ROS install and '
+                                   'the ros2 CLI are not on this machine (make colcon-smoke '
+                                   'builds and runs the package as such a workspace does)',
+    'sudo apt install python3-can': 'installs system packages',
+    'ip -details link show can0': 'SocketCAN: this kernel has none, and it needs root',
+    'config/pcan.yaml': 'the ros2 CLI and a PEAK adapter',
+    'can.interface:=kvaser': 'the ros2 CLI and a Kvaser adapter',
+    'config/slcan.yaml': 'the ros2 CLI and an slcan adapter (test_config starts this file '
+                         'against a fake adapter)',
+    'sudo slcand': 'slcand, a kernel module and root',
+    'buses:=can0,can1': 'SocketCAN, root and ros2 launch (test_launch runs the launch file)',
+    'cbcan_node: cannot start:': 'the output of a node given wrong values: test_config checks '
+                                 'these messages',
+    'ros2 lifecycle set': 'the ros2 CLI (test_lifecycle drives the same transitions)',
+    'SdoRead request:': 'a summary of srv_defs/srv/SdoRead.srv and SdoWrite.srv, not code',
+    'SdoBatch request:': 'a summary of srv_defs/srv/SdoBatch.srv, not code',
+    'NmtCommand request:': 'a summary of srv_defs/srv/NmtCommand.srv and NmtState.srv',
+    'ros2 service call /can0/cbcan/sdo_write': 'the ros2 CLI',
+    'ros2 service call /can0/cbcan/nmt_command': 'the ros2 CLI',
+    'ros2 topic echo /can0/cbcan/emcy': 'the ros2 CLI',
+}
+# Commands of a cbcan_cli block that are not cbcan_cli calls: why they do not run here.
+NOT_RUN_COMMANDS = {
+    'make run': 'the gateway every block here runs against is started as this recipe starts it',
+    'make test': 'the test suite, of which this test is a part',
+}
+
+
+@dataclass
+class Block:
+    """One fenced code block of the README."""
+
+    line: int
+    language: str
+    text: str
+
+    def __str__(self) -> str:
+        first = self.text.strip().splitlines()[0] if self.text.strip() else ''
+        return f'README.md line {self.line} ({self.language or "no language"}): {first[:70]}'
+
+
+def readme_blocks() -> List[Block]:
+    """Return every fenced code block of the README, indented ones too."""
+    text = README.read_text()
+    blocks = []
+    for match in re.finditer(r'^( *)```(\w*)\n(.*?)^\1```$', text, re.S | re.M):
+        indent = len(match.group(1))
+        body = '\n'.join(line[indent:] for line in match.group(3).splitlines())
+        blocks.append(Block(text.count('\n', 0, match.start()) + 1, match.group(2), body))
+    return blocks
+
+
+def session(block: Block) -> List[Tuple[str, List[str]]]:
+    """Return the commands of a shell block, each with the lines it is shown to print.
+
+    Continuation lines are joined and comment lines dropped. In a terminal session (lines
+    starting ``$ ``) the lines after a command are its output; elsewhere none is shown.
+    """
+    lines = block.text.replace('\\\n', ' ').splitlines()
+    if not any(line.startswith('$ ') for line in lines):
+        return [(line.strip(), []) for line in lines if shlex.split(line, comments=True)]
+    steps = []
+    for line in lines:
+        if line.startswith('$ '):
+            steps.append((line[2:].strip(), []))
+        elif steps:
+            steps[-1][1].append(line)
+    return steps
+
+
+def cli_arguments(command: str):
+    """Return the cbcan_cli arguments of a command, None when it is not a cbcan_cli call."""
+    words = shlex.split(command, comments=True)
+    if words[:1] == ['cbcan_cli']:
+        return words[1:]
+    if words[:2] == ['make', 'cli'] and len(words) == 3 and words[2].startswith('ARGS='):
+        return shlex.split(words[2][len('ARGS='):])
+    return None
+
+
+def kind(block: Block) -> str:
+    """Return how the test takes a block: python, cli, parameters, aggregator or not-run."""
+    listed = [piece for piece in NOT_RUN if piece in block.text]
+    if listed:
+        return 'not-run'
+    if block.language == 'python':
+        return 'python'
+    if block.language == 'yaml':
+        keys = list(yaml.safe_load(block.text))
+        if keys == ['analyzers']:
+            return 'aggregator'
+        if all(key.startswith('/') for key in keys):
+            return 'parameters'
+    if block.language == 'bash' and all(
+            cli_arguments(command) is not None
+            or ' '.join(shlex.split(command, comments=True)) in NOT_RUN_COMMANDS
+            for command, _output in session(block)):
+        return 'cli'
+    return 'unclassified'
+
+
+def blocks_of(wanted: str) -> List[Block]:
+    return [block for block in readme_blocks() if kind(block) == wanted]
+
+
+def test_every_block_is_run_or_listed_with_a_reason():
+    blocks = readme_blocks()
+    assert len(blocks) > 10, 'the README has fewer code blocks than expected: parsing broke'
+    kinds = [kind(block) for block in blocks]
+    unclassified = [str(block) for block, taken in zip(blocks, kinds, strict=True)
+                    if taken == 'unclassified']
+    assert not unclassified, ('neither run by this test nor listed in NOT_RUN with a reason '
+                              f'(run them here or list them): {unclassified}')
+    for piece in NOT_RUN:
+        named = [str(block) for block in blocks if piece in block.text]
+        assert len(named) == 1, f'NOT_RUN entry {piece!r} names {len(named)} blocks: {named}'
+    assert {'python', 'cli', 'parameters', 'aggregator'} <= set(kinds), kinds
+
+
+def make_run_arguments() -> List[str]:
+    """Return the arguments the Makefile's ``run`` recipe starts cbcan_node with."""
+    recipe = re.search(r'^run:.*\n\t.*cbcan_node (.*)$', (ROOT / 'Makefile').read_text(), re.M)
+    assert recipe, 'the Makefile has no run recipe starting cbcan_node'
+    words = shlex.split(recipe.group(1).replace('$(ROOT)', str(ROOT)))
+    assert words[0] == '--ros-args' and words[-1] == '$(ARGS)', words
+    return words[1:-1]
+
+
+def parameter_file(block: Block, folder: pathlib.Path) -> pathlib.Path:
+    """Write a parameter block to a file, with a copy of the simulated EDS as node 5's EDS."""
+    eds = folder / 'drive_5.eds'
+    eds.write_text(pathlib.Path(EDS).read_text())
+    path = folder / f'parameters_{block.line}.yaml'
+    path.write_text(block.text.replace(README_EDS, str(eds)))
+    return path
+
+
+@pytest.mark.parametrize('block', blocks_of('parameters'), ids=lambda block: f'line{block.line}')
+def test_parameter_examples_are_taken_by_the_gateway(block, tmp_path):
+    node = Node('cbcan', cli_args=['--ros-args', '-r', '__ns:=/can0', '--params-file',
+                                   str(parameter_file(block, tmp_path))],
+                use_global_arguments=False)
+    try:
+        parameters = NodeParameters(node)  # refuses a name the gateway does not declare
+        parameters.gateway_config()  # checks every value; opens no bus
+        assert parameters.warnings == [], f'{block}: {parameters.warnings}'
+    finally:
+        node.destroy_node()
+
+
+@pytest.fixture(scope='module')
+def gateway(tmp_path_factory):
+    """Start the gateway as ``make run`` does, with the README's parameter file on top.
+
+    That file names node 5's EDS by a path of this machine: a copy of the simulated device's.
+    Yields the process and the path of the EDS copy.
+    """
+    folder = tmp_path_factory.mktemp('readme')
+    named = [block for block in blocks_of('parameters') if README_EDS in block.text]
+    assert len(named) == 1, [str(block) for block in named]
+    parameters = parameter_file(named[0], folder)
+    process = NodeProcess([*make_run_arguments(), '--params-file', str(parameters)])
+    try:
+        yield process, str(folder / 'drive_5.eds')
+    finally:
+        process.close()
+
+
+@pytest.fixture(scope='module')
+def cli_client(gateway):
+    """Yield one cbcan_cli client of the gateway, once it answers.
+
+    The examples then wait only for their own discovery (1-2 s), not for the gateway's start.
+    """
+    client = Client(DEFAULT_GATEWAY, START_TIMEOUT)
+    try:
+        client.state(5)
+    except GatewayError as error:
+        client.close()
+        raise AssertionError(f'{error}\ncbcan_node output:\n{gateway[0].output()}') from None
+    yield client
+    client.close()
+
+
+def expected_lines(script: str) -> List[str]:
+    return [line.split('# -> ', 1)[1].strip() for line in script.splitlines()
+            if '# -> ' in line]
+
+
+@pytest.mark.parametrize('block', blocks_of('python'), ids=lambda block: f'line{block.line}')
+def test_python_examples_run_as_printed(gateway, cli_client, block, tmp_path):
+    script = tmp_path / 'example.py'
+    script.write_text(block.text)
+    finished = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                              timeout=SCRIPT_TIMEOUT, cwd=tmp_path)
+    report = (f'{block}\nstdout:\n{finished.stdout}\nstderr:\n{finished.stderr}\n'
+              f'cbcan_node output:\n{gateway[0].output()}')
+    assert finished.returncode == 0, report
+    printed = iter(finished.stdout.splitlines())
+    for expected in expected_lines(block.text):
+        assert any(line == expected for line in printed), f'{expected!r} not printed\n{report}'
+
+
+def test_cli_examples_run_as_printed(gateway, cli_client, capsys, monkeypatch):
+    monkeypatch.chdir(ROOT)  # the examples name files of the repository by relative paths
+    ran = 0
+    for block in blocks_of('cli'):
+        for command, shown in session(block):
+            arguments = cli_arguments(command)
+            if arguments is None:
+                continue  # one of NOT_RUN_COMMANDS
+            args = build_parser().parse_args(arguments)
+            assert args.gateway == DEFAULT_GATEWAY, f'{block}: {command}'
+            status = run(cli_client, args)
+            out, err = capsys.readouterr()
+            said = (f'{block}\n$ {command}\nstatus {status}\nstdout:\n{out}stderr:\n{err}'
+                    f'cbcan_node output:\n{gateway[0].output()}')
+            if shown:
+                expected = [line.replace(README_EDS, gateway[1]) for line in shown]
+                assert (out + err).splitlines() == expected, said
+            else:
+                assert status == 0, said
+            ran += 1
+    assert ran >= 10, f'only {ran} cbcan_cli commands found in the README'
+
+
+def test_diagnostic_aggregator_example_names_what_the_gateway_publishes(gateway, cli_client,
+                                                                      client_node):
+    blocks = blocks_of('aggregator')
+    assert len(blocks) == 1, [str(block) for block in blocks]
+    groups = yaml.safe_load(blocks[0].text)['analyzers']['ros__parameters']['can']['analyzers']
+    names: Dict[str, int] = {}
+    lock = threading.Lock()
+
+    def on_diagnostics(message: DiagnosticArray) -> None:
+        with lock:
+            for status in message.status:
+                names[status.name] = status.level
+
+    client_node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics,
+                                    DIAGNOSTICS_QOS)
+    expected = groups['can0']['expected']
+    assert groups['can0']['find_and_remove_prefix'] == [f'{AGGREGATOR_GATEWAY}: ']
+
+    def published():
+        with lock:
+            return all(name in names for name in expected)
+    wait_until(published, START_TIMEOUT, f'{expected} on /diagnostics (seen {names}); '
+                                         f'cbcan_node output:\n{gateway[0].output()}')
