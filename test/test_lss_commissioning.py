@@ -42,8 +42,10 @@ def identities(response):
 
 @pytest.fixture
 def lss_device():
-    """Return a factory ``lss_device(harness, serial, node_id=255, **options)``: a durand LSS slave
-    on the harness's bus, stopped after the test."""
+    """Return a factory ``lss_device(harness, serial, node_id=255, **options)``.
+
+    It starts a durand LSS slave on the harness's bus, stopped after the test.
+    """
     started = []
 
     def factory(harness, serial: int, node_id: int = 255, **options) -> DurandDevice:

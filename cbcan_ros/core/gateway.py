@@ -80,8 +80,11 @@ class NmtResult:
 
 
 def _closes_a_running_operation(message: can.Message) -> bool:
-    """Return whether ``message`` may go out after shutdown began: an SDO abort of a
-    transfer that was running, or the LSS switch of every device back to waiting."""
+    """Return whether ``message`` may go out after shutdown began.
+
+    Only what closes an operation that was running: an SDO transfer's abort, or the LSS
+    switch of every device back to waiting.
+    """
     sdo_abort = 0x600 <= message.arbitration_id <= 0x67F and message.data[:1] == b'\x80'
     return sdo_abort or lss.is_all_waiting(message)
 

@@ -395,7 +395,7 @@ class LssMaster:
         commands = (cia305.CS_SWITCH_STATE_SELECTIVE_VENDOR_ID,
                     cia305.CS_SWITCH_STATE_SELECTIVE_PRODUCT_CODE,
                     cia305.CS_SWITCH_STATE_SELECTIVE_REVISION_NUMBER)
-        for command, value in zip(commands, identity.parts()[:3]):
+        for command, value in zip(commands, identity.parts()[:3], strict=True):
             self._send(struct.pack('<BI', command, value))
         return self._request(struct.pack('<BI', cia305.CS_SWITCH_STATE_SELECTIVE_SERIAL_NUMBER,
                                          identity.serial),

@@ -47,8 +47,8 @@ def parse_rule(text: str) -> WriteRule:
 class WriteProtection:
     """What may be written.
 
-    ``read_only`` refuses every write, NMT command and LSS service; otherwise ``rules``, if any, list the
-    objects that may be written.
+    ``read_only`` refuses every write, NMT command and LSS service; otherwise ``rules``, if
+    any, list the objects that may be written.
     """
 
     read_only: bool = False

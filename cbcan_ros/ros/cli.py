@@ -42,8 +42,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import parameter_value_to_python
 
-from ..core import eds
-from ..core import lss
+from ..core import eds, lss
 from ..core.gateway import own_dictionary
 from ..core.sdo import MAX_NODE_ID, MAX_TIMEOUT
 from ..core.text import quoted
@@ -620,7 +619,7 @@ def _add_lss_commands(commands) -> None:
         'lss-scan', help='find unconfigured devices (LSS Fastscan) and number them',
         description='Find the devices without a node id (LSS Fastscan, CiA 305). With '
                     '--assign-from, give each a node id from ID upward, skipping ids heard on '
-                    'the bus or listed in the gateway\'s nodes; each then boots with its id. '
+                    "the bus or listed in the gateway's nodes; each then boots with its id. "
                     'Without, report one device found and leave it unconfigured.')
     scan.add_argument('--assign-from', type=_ranged('assign-from', 1, MAX_NODE_ID),
                       default=0, metavar='ID', help='first node id to give (1..127)')
@@ -637,7 +636,8 @@ def _add_lss_commands(commands) -> None:
     _lss_arguments(configure, True, '5 s')
     configure.add_argument('--node-id', type=_ranged('node-id', 1, MAX_NODE_ID), default=0,
                            metavar='ID', help='new node id 1..127')
-    configure.add_argument('--bitrate', type=_ranged('bitrate', 0, 0xFFFFFFFF), default=0, metavar='BPS',
+    configure.add_argument('--bitrate', type=_ranged('bitrate', 0, 0xFFFFFFFF), default=0,
+                           metavar='BPS',
                            help=f'new bit rate in bit/s ({", ".join(map(str, lss.BIT_TIMING))}'
                                 f'); needs --store, takes effect at the next power-on')
     configure.add_argument('--store', action='store_true',
@@ -645,7 +645,7 @@ def _add_lss_commands(commands) -> None:
     configure.set_defaults(run=cmd_lss_configure)
 
     inquire = commands.add_parser(
-        'lss-inquire', help="ask one device for its node id (LSS)",
+        'lss-inquire', help='ask one device for its node id (LSS)',
         description='Print the node id of the device with this identity (255: '
                     'unconfigured).')
     _lss_arguments(inquire, True, '5 s')
