@@ -70,7 +70,7 @@ def main(argv=None) -> int:
     generator = random.Random(305)
     rows = [
         row('scan, no device', scan_rounds(rounds, lambda _: ()), NONE_TARGET),
-        row('scan, 3 devices (the simulation\'s serials 7, 0x12, 0x30)',
+        row("scan, 3 devices (the simulation's serials 7, 0x12, 0x30)",
             scan_rounds(rounds, lambda _: (0x7, 0x12, 0x30)), THREE_TARGET),
         row('scan, 3 devices (random 32-bit serials)',
             scan_rounds(rounds, lambda _: generator.sample(range(2 ** 32), 3)), THREE_TARGET),

@@ -20,6 +20,7 @@ import can
 from hypothesis import given, HealthCheck, Phase, settings
 from hypothesis import strategies as st
 import pytest
+from test_fuzz import Problems
 
 from cbcan_ros.msg import LssIdentity
 from cbcan_ros.simulation.durand_device import DurandDevice
@@ -38,20 +39,6 @@ REQUEST_FUZZ = settings(ROGUE_FUZZ, max_examples=40)
 # The command specifiers of LSS answers and requests, so generated frames often look right.
 ANSWERS = [0x11, 0x13, 0x17, 0x44, 0x47, 0x4F, 0x50, 0x5A, 0x5B, 0x5C, 0x5D, 0x5E]
 REQUESTS = [0x04, 0x11, 0x13, 0x15, 0x17, 0x40, 0x41, 0x42, 0x43, 0x4C, 0x51, 0x5E]
-
-
-class Problems(logging.Handler):
-    """Collects the gateway's log records of failures it did not expect."""
-
-    def __init__(self):
-        super().__init__(logging.WARNING)
-        self.records = []
-
-    def emit(self, record):
-        """Keep ``record`` if it reports an unexpected failure."""
-        text = record.getMessage()
-        if 'unexpectedly' in text or 'handler failed' in text:
-            self.records.append(text)
 
 
 @pytest.fixture
@@ -163,15 +150,18 @@ def test_rogue_lss_frames_never_crash_or_mislead_a_scan(gateway, frames, replies
 
 
 def yes_to_everything(request: bytes) -> bytes:
-    """A faulty device: it matches every Fastscan probe and takes every configuration."""
+    """Answer as a faulty device would: match every Fastscan probe, take every setting."""
     answers = {0x51: 0x4F, 0x11: 0x11, 0x17: 0x17, 0x43: 0x44}
     return bytes([answers[request[0]]]) + bytes(7) if request[0] in answers else None
 
 
 @pytest.mark.parametrize('store', [False, True])
 def test_device_saying_yes_to_every_probe_does_not_make_up_a_device(make_gateway, store):
-    """Its answers make the scan's bits all 0 and confirm them; the identity read back from
-    the device in the configuration state (none is) shows it is made up."""
+    """Its answers make the scan's bits all 0 and confirm them.
+
+    The identity read back from the device in the configuration state (none is) shows it
+    is made up.
+    """
     gateway = make_gateway(lss__probe_timeout=0.01)  # every probe is answered: keep it short
     listener = gateway.raw_bus()
     stop = threading.Event()

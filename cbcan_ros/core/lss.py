@@ -28,7 +28,7 @@ from typing import Callable, Iterable, List, Optional, Set, Tuple
 from canopen import lss as cia305
 
 from .bus import BusDown
-from .sdo import answer, Deadlines, MAX_NODE_ID, resolved
+from .sdo import answer, Deadlines, JobQueue, MAX_NODE_ID, resolved
 
 LOGGER = logging.getLogger(__name__)
 
@@ -259,9 +259,7 @@ class LssMaster:
         self._used_ids = used_ids
         self._detected = detected
         self._responses = _Responses()
-        self._queue: deque = deque()
-        self._changed = threading.Condition()
-        self._closed: Optional[str] = None
+        self._jobs = JobQueue()
         self._thread = threading.Thread(target=self._work, name='lss', daemon=True)
 
     def start(self) -> None:
@@ -301,18 +299,15 @@ class LssMaster:
 
     def fail_all(self, reason: str) -> None:
         """Answer every waiting call with ``reason`` and end the running operation."""
-        with self._changed:
-            jobs = list(self._queue)
-            self._queue.clear()
+        with self._jobs.lock:
+            jobs = self._jobs.take_all()
             self._responses.cancel(reason)  # under the lock: a job taken after runs anew
         for job in jobs:
             answer(job.future, LssResult(False, f'{reason}; nothing was sent'))
 
     def close(self, reason: str) -> None:
         """Refuse new calls, answer waiting ones, end the running one and the worker."""
-        with self._changed:
-            self._closed = reason
-            self._changed.notify()
+        self._jobs.close(reason)
         self.fail_all(reason)
         if self._thread.is_alive():
             self._thread.join(1.0)
@@ -322,11 +317,10 @@ class LssMaster:
     def _submit(self, run: Callable[[float], LssResult], timeout: float) -> Future:
         job = _Job(run, time.monotonic() + timeout, timeout, Future())
         refusal = self._refusal()
-        with self._changed:
-            refusal = refusal or self._closed
+        with self._jobs.lock:
+            refusal = refusal or self._jobs.closed
             if refusal is None:
-                self._queue.append(job)
-                self._changed.notify()
+                self._jobs.put(job)
         if refusal is not None:
             answer(job.future, LssResult(False, f'{refusal}; nothing was sent'))
         else:
@@ -334,23 +328,17 @@ class LssMaster:
         return job.future
 
     def _expire(self, job: _Job) -> None:
-        with self._changed:
-            if job not in self._queue:
-                return
-            self._queue.remove(job)
+        if not self._jobs.withdraw(job):
+            return
         answer(job.future, LssResult(False, f'busy: another LSS operation on this bus was '
                                             f'still running after {job.timeout:g} s (one '
                                             f'runs at a time); nothing was sent'))
 
     def _work(self) -> None:
         while True:
-            with self._changed:
-                while not self._queue and self._closed is None:
-                    self._changed.wait()
-                if not self._queue:
-                    return
-                job = self._queue.popleft()
-                self._responses.cancel(None)
+            job = self._jobs.next(lambda _: self._responses.cancel(None))
+            if job is None:
+                return
             answer(job.future, self._guarded(job))
 
     def _guarded(self, job: _Job) -> LssResult:
