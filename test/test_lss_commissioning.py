@@ -350,3 +350,16 @@ def test_shutdown_during_a_scan_answers_every_call_and_only_returns_devices_to_w
     assert 'nothing was sent' in answers[1].message
     assert all(bytes(m.data[:2]) == ALL_WAITING for m in late), late
     assert_all_waiting(devices)
+
+
+def test_scan_storing_in_a_device_that_cannot_store_says_so_and_lists_its_new_id(
+        make_gateway, lss_device):
+    gateway = make_gateway()
+    device = lss_device(gateway, 0x7, lss_store=False)
+    response = gateway.call('lss_scan', wait=ANSWER, first_node_id=40, store=True)
+    assert not response.success
+    assert (identities(response), list(response.node_ids)) == ([0x7], [40])
+    assert 'has node id 40 but it is not stored: the device refused store configuration: ' \
+           'LSS error 1 (storing the configuration is not supported)' in response.message
+    wait_until(lambda: device.node_id == 40, 5.0, 'the device on its new id')
+    assert_all_waiting([device])

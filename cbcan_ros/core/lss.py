@@ -517,15 +517,23 @@ class LssMaster:
                                          f'{first_node_id} to 127 is free (heard on the bus '
                                          f'or listed in nodes)')
                 node_id = free[0]
-                problem = self._give(node_id, store, deadline)
+                problem = self._refused(cia305.CS_CONFIGURE_NODE_ID, bytes([node_id]),
+                                        deadline)
                 if problem:
                     return result(False, f'{identity}: {problem}')
+                # From here it boots with the id at the next switch to waiting, come what may.
                 devices.append(identity)
                 node_ids.append(node_id)
                 used.add(node_id)
+                problem = store and self._refused(cia305.CS_STORE_CONFIGURATION, b'', deadline)
+                if problem:
+                    return result(False, f'{identity} has node id {node_id} but it is not '
+                                         f'stored: {problem}')
         except TimeoutError:
             return result(False, f'the scan ran out of time after finding {len(devices)} '
                                  f'device(s); scan again to find the rest')
+        except (Cancelled, BusDown) as error:
+            return result(False, str(error))
         if not devices:
             return result(True, f'no unconfigured device found: nothing answered the '
                                 f'Fastscan within {self.probe_wait * 1000:.0f} ms')
@@ -534,17 +542,13 @@ class LssMaster:
         return result(True, f'found {len(devices)} unconfigured device(s) and gave '
                             f'{given}{stored}')
 
-    def _give(self, node_id: int, store: bool, deadline: float) -> Optional[str]:
-        """Configure (and store) ``node_id`` in the device in configuration state."""
-        steps = [(cia305.CS_CONFIGURE_NODE_ID, bytes([node_id]))]
-        if store:
-            steps.append((cia305.CS_STORE_CONFIGURATION, b''))
-        for command, argument in steps:
-            code = self._configure_step(command, argument, deadline)
-            if code is None:
-                return f'no answer to {WHAT[command]}'
-            if code:
-                return f'the device refused {WHAT[command]}: {describe_error(command, code)}'
+    def _refused(self, command: int, argument: bytes, deadline: float) -> Optional[str]:
+        """Send a configure or store request; return why it failed, or None."""
+        code = self._configure_step(command, argument, deadline)
+        if code is None:
+            return f'no answer to {WHAT[command]}'
+        if code:
+            return f'the device refused {WHAT[command]}: {describe_error(command, code)}'
         return None
 
     def _find(self, identity: Identity, deadline: float) -> Optional[str]:
