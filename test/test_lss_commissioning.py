@@ -311,13 +311,13 @@ def test_sdo_and_nmt_to_other_devices_keep_working_during_a_scan(make_gateway, l
 
 def test_second_lss_call_waits_its_timeout_or_is_told_busy(make_gateway, lss_device):
     gateway = make_gateway()
-    lss_device(gateway, 0x12, node_id=20)
+    lss_device(gateway, 0x99, node_id=20)
     devices = [lss_device(gateway, serial) for serial in SERIALS]
     scan = gateway.call_async('lss_scan', first_node_id=30)
     wait_until(lambda: any(d.node_id != 255 for d in devices) or scan.done(), 30.0,
                'the scan under way')
-    impatient = gateway.call('lss_inquire', identity=identity(0x12), timeout=0.01)
-    patient = gateway.call_async('lss_inquire', identity=identity(0x12), timeout=60.0)
+    impatient = gateway.call('lss_inquire', identity=identity(0x99), timeout=0.01)
+    patient = gateway.call_async('lss_inquire', identity=identity(0x99), timeout=60.0)
     assert not impatient.success
     assert 'busy: another LSS operation' in impatient.message, impatient.message
     assert 'nothing was sent' in impatient.message

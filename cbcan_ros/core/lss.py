@@ -2,9 +2,9 @@
 
 The frames and command specifiers are python-canopen's (``canopen.lss``); its ``LssMaster``
 is not used because it does not fit a gateway (see the README's library gaps): it waits
-0.5 s on every unanswered request, and a Fastscan probes bit by bit, so a scan finding nothing
-took 0.5 s and one device over a minute; it keeps one queue for every answer, so a late or
-foreign frame answers the next request; it returns nothing for requests nobody answers and
+0.5 s on every unanswered request, and a Fastscan probes bit by bit (silence means a 1 bit),
+so a scan finding nothing took 0.5 s and one device tens of seconds; it keeps one queue for
+every answer, so a late or foreign frame answers the next request; it returns nothing for requests nobody answers and
 raises on others, and drops the error code of a refusal.
 
 Here answers are matched by command specifier and only frames the bus thread took after the
@@ -42,7 +42,7 @@ BIT_TIMING = {1000000: 0, 800000: 1, 500000: 2, 250000: 3, 125000: 4, 50000: 6, 
               10000: 8}
 
 # A probe and its answer are two 8-byte frames: at most 135 bits each with stuffing. The bit
-# rate of a bus the gateway does not set (SocketCAN, virtual) is not known: take the slowest.
+# rate of a bus the gateway does not set (SocketCAN) is not known: take the slowest.
 FRAME_BITS = 135
 SLOWEST_BIT_RATE = 10000
 # python-can buses without a wire: frames take no time on them.
