@@ -4,8 +4,8 @@ The frames and command specifiers are python-canopen's (``canopen.lss``); its ``
 is not used because it does not fit a gateway (see the README's library gaps): it waits
 0.5 s on every unanswered request, and a Fastscan probes bit by bit (silence means a 1 bit),
 so a scan finding nothing took 0.5 s and one device tens of seconds; it keeps one queue for
-every answer, so a late or foreign frame answers the next request; it returns nothing for requests nobody answers and
-raises on others, and drops the error code of a refusal.
+every answer, so a late or foreign frame answers the next request; it returns nothing for
+requests nobody answers and raises on others, and drops the error code of a refusal.
 
 Here answers are matched by command specifier and only frames the bus thread took after the
 request went out count (frames carry the host's monotonic receive time). A Fastscan probe
