@@ -22,7 +22,16 @@ from rclpy.parameter import Parameter  # noqa: E402
 from cbcan_ros.msg import NodeStates  # noqa: E402
 from cbcan_ros.ros.interface import NODE_STATES_QOS, SERVICE_QOS  # noqa: E402
 from cbcan_ros.ros.node import CbcanNode  # noqa: E402
-from cbcan_ros.srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite  # noqa: E402
+from cbcan_ros.srv import (  # noqa: E402
+    LssConfigure,
+    LssInquire,
+    LssScan,
+    NmtCommand,
+    NmtState,
+    RegisterMailbox,
+    SdoRead,
+    SdoWrite,
+)
 
 SERVICE_TYPES = {
     'sdo_read': SdoRead,
@@ -30,6 +39,9 @@ SERVICE_TYPES = {
     'nmt_command': NmtCommand,
     'nmt_state': NmtState,
     'plc_mailbox': RegisterMailbox,
+    'lss_scan': LssScan,
+    'lss_configure': LssConfigure,
+    'lss_inquire': LssInquire,
 }
 
 DEFAULT_DEVICES = [2, 3, 5]

@@ -12,7 +12,9 @@ import time
 
 import pytest
 
+from cbcan_ros.msg import LssIdentity
 from cbcan_ros.simulation.canopen_device import SimulatedDevice
+from cbcan_ros.simulation.durand_device import DurandDevice
 
 from conftest import HEAVY, new_channel, wait_for_future, wait_until
 import faulty_bus
@@ -217,3 +219,35 @@ def test_a_thousand_concurrent_calls_each_get_one_honest_answer(start_faulty):
         assert 'busy' in answer.message and '16' in answer.message, answer.message
         assert 'sdo.queue_limit' in answer.message
     assert bytes(read_device_type(gateway).data) == DEVICE_TYPE
+
+
+def test_lss_calls_are_answered_at_once_when_the_bus_goes_down_and_work_after(start_faulty):
+    gateway, faults = start_faulty()
+    devices = [DurandDevice(255, 'virtual', gateway.channel, lss=True,
+                            identity=(0x319, 0x51, 0x10000, serial)) for serial in (7, 0x12)]
+    try:
+        for device in devices:
+            device.start()
+        scan = gateway.call_async('lss_scan', first_node_id=10, timeout=60.0)
+        wait_until(lambda: any(m.arbitration_id == 0x7E5 for m in faults.sent), PROMPT * 5,
+                   'the scan under way')
+        faults.fail_open('adapter gone')
+        faults.fail_receive('adapter unplugged')
+        started = time.monotonic()
+        response = wait_for_future(scan, 30.0)
+        assert time.monotonic() - started < PROMPT * 3
+        assert not response.success
+        assert 'the CAN bus is down' in response.message, response.message
+        refused = gateway.call('lss_inquire', identity=LssIdentity(
+            vendor_id=0x319, product_code=0x51, revision=0x10000, serial=7))
+        assert 'the CAN bus is down' in refused.message and 'nothing was sent' in \
+            refused.message, refused.message
+        faults.clear()
+        wait_for_recovery(gateway)
+        again = gateway.call('lss_scan', wait=60.0, first_node_id=10)
+        assert again.success, again.message
+        assert sorted(d.node_id for d in devices) == sorted(
+            list(again.node_ids) + list(response.node_ids))
+    finally:
+        for device in devices:
+            device.stop()

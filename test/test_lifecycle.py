@@ -13,9 +13,19 @@ from rcl_interfaces.msg import Parameter as ParameterMessage
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 
-from cbcan_ros.msg import NodeStates, SdoAccess
+from cbcan_ros.msg import LssIdentity, NodeStates, SdoAccess
 from cbcan_ros.ros.interface import NODE_STATES_QOS
-from cbcan_ros.srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
+from cbcan_ros.srv import (
+    LssConfigure,
+    LssInquire,
+    LssScan,
+    NmtCommand,
+    NmtState,
+    RegisterMailbox,
+    SdoBatch,
+    SdoRead,
+    SdoWrite,
+)
 
 from conftest import wait_until
 from node_process import call, random_bus, service_client
@@ -102,6 +112,13 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
         answer = call(client(RegisterMailbox, 'plc_mailbox'), RegisterMailbox.Request(
             format='cbcan', registers=registers), 'plc_mailbox', node)
         assert list(answer.registers) == registers and 'inactive' in answer.message
+        for service_type, service, request in (
+                (LssScan, 'lss_scan', LssScan.Request(first_node_id=10)),
+                (LssConfigure, 'lss_configure', LssConfigure.Request(
+                    identity=LssIdentity(serial=7), node_id=10)),
+                (LssInquire, 'lss_inquire', LssInquire.Request(identity=LssIdentity()))):
+            answer = call(client(service_type, service), request, service, node)
+            assert not answer.success and 'inactive' in answer.message
 
     refused_while_inactive()
     assert not states and not diagnostics, 'nothing is published before activate'

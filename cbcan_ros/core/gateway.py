@@ -16,7 +16,7 @@ import can
 import canopen
 from canopen import objectdictionary as od
 
-from . import abort_codes, nmt
+from . import abort_codes, lss, nmt
 from .bus import BusDown, BusStatus, BusSupervisor
 from .canopen_gaps import StrictSdoClient, without_heartbeat_producer
 from .emcy import EmcyMonitor
@@ -67,6 +67,7 @@ class GatewayConfig:
     read_retries: int = 0
     write_protection: WriteProtection = WriteProtection()
     bus_options: Dict[str, object] = field(default_factory=dict)
+    lss_probe_timeout: float = 0.0  # 0: derived from the bit rate
 
 
 @dataclass(frozen=True)
@@ -78,8 +79,14 @@ class NmtResult:
     abort_code: int = 0
 
 
-def _is_sdo_abort(message: can.Message) -> bool:
-    return 0x600 <= message.arbitration_id <= 0x67F and message.data[:1] == b'\x80'
+def _closes_a_running_operation(message: can.Message) -> bool:
+    """Return whether ``message`` may go out after shutdown began.
+
+    Only what closes an operation that was running: an SDO transfer's abort, or the LSS
+    switch of every device back to waiting.
+    """
+    sdo_abort = 0x600 <= message.arbitration_id <= 0x67F and message.data[:1] == b'\x80'
+    return sdo_abort or lss.is_all_waiting(message)
 
 
 def _variable(name, index, subindex, data_type, access, default):
@@ -139,6 +146,13 @@ class Gateway:
                                           config.guard_period)
         self.emcy = EmcyMonitor(self.network)
         self._deadlines = Deadlines()
+        self.lss = lss.LssMaster(
+            self.network, self._deadlines,
+            lss.probe_wait(config.interface, config.bitrate, config.lss_probe_timeout),
+            used_ids=lambda: {s.node_id for s in self.monitor.statuses()}.union(
+                config.guarded_nodes),
+            detected=lambda node_id: self.monitor.status(node_id).detected,
+            refusal=self._lss_refusal)
         self._channels: Dict[int, SdoChannel] = {}
         self._lock = threading.Lock()
         self._closing = False
@@ -160,6 +174,7 @@ class Gateway:
         self.monitor.start()
         self.emcy.start()
         self._guarding.start()
+        self.lss.start()
         self.bus.start()
 
     def stop(self) -> None:
@@ -173,8 +188,9 @@ class Gateway:
                 return
             self._closing = True
             channels = list(self._channels.values())
-        self.bus.restrict_sending(_is_sdo_abort, SHUTTING_DOWN)
+        self.bus.restrict_sending(_closes_a_running_operation, SHUTTING_DOWN)
         self._guarding.stop()
+        self.lss.close(SHUTTING_DOWN)
         for channel in channels:
             channel.close(SHUTTING_DOWN, abort_codes.DEVICE_STATE)
         for channel in channels:
@@ -257,6 +273,15 @@ class Gateway:
             return NmtResult(False, f'the NMT command was not sent: {error}')
         return NmtResult(True)
 
+    def _lss_refusal(self) -> Optional[str]:
+        refusal = self.config.write_protection.refuses_lss()
+        status = self.bus.status
+        if refusal:
+            return refusal
+        if self._closing:
+            return SHUTTING_DOWN
+        return None if status.up else f'the CAN bus is down: {status.reason}'
+
     def _open_bus(self) -> can.BusABC:
         options = dict(self.config.bus_options)
         if self.config.bitrate:
@@ -271,6 +296,7 @@ class Gateway:
             channels = list(self._channels.values())
         for channel in channels:
             channel.fail_all(f'the CAN bus is down: {status.reason}')
+        self.lss.fail_all(f'the CAN bus is down: {status.reason}')
         self.monitor.lose_all()
 
     def _single(self, access: Access, timeout: float) -> 'Future[SdoResult]':

@@ -357,6 +357,62 @@ class Deadlines:
                 self._changed.wait(self._heap[0][0] - now if self._heap else None)
 
 
+class JobQueue:
+    """The requests waiting for one worker thread, in order, until it is closed.
+
+    ``lock`` (a re-entrant condition) guards the queue, and whatever its owner keeps with it.
+    """
+
+    def __init__(self):
+        self.lock = threading.Condition()
+        self._jobs: deque = deque()
+        self.closed = None  # once closing: what new requests are answered
+
+    def __len__(self) -> int:
+        return len(self._jobs)
+
+    def put(self, job) -> None:
+        """Queue ``job`` (the caller holds ``lock`` and checked ``closed``)."""
+        with self.lock:
+            self._jobs.append(job)
+            self.lock.notify()
+
+    def close(self, refusal) -> None:
+        """Refuse new requests with ``refusal``; the worker ends once the queue is empty."""
+        with self.lock:
+            self.closed = refusal
+            self.lock.notify()
+
+    def take_all(self) -> list:
+        """Remove and return every waiting job."""
+        with self.lock:
+            jobs = list(self._jobs)
+            self._jobs.clear()
+        return jobs
+
+    def withdraw(self, job) -> bool:
+        """Remove ``job`` if it still waits; return whether it did (else it ran or runs)."""
+        with self.lock:
+            if job not in self._jobs:
+                return False
+            self._jobs.remove(job)
+            return True
+
+    def next(self, on_take: Callable[[object], None]):
+        """Wait for the next job, call ``on_take(job)`` under the lock, return it.
+
+        Returns None once closed with nothing left to run.
+        """
+        with self.lock:
+            while not self._jobs and self.closed is None:
+                self.lock.wait()
+            if not self._jobs:
+                return None
+            job = self._jobs.popleft()
+            on_take(job)
+            return job
+
+
 class SdoChannel:
     """The SDO server channel of one remote device: its strict client, queue and worker.
 
@@ -375,9 +431,8 @@ class SdoChannel:
         self._block = block_transfer
         self._queue_limit = queue_limit
         self._read_retries = read_retries
-        self._queue: deque = deque()
-        self._changed = threading.Condition()
-        self._closed: Optional[SdoResult] = None
+        self._jobs = JobQueue()
+        self._changed = self._jobs.lock
         self._requests = 0
         self._aborts = 0
         self._timeouts = 0
@@ -406,18 +461,13 @@ class SdoChannel:
 
     def fail_all(self, reason: str, abort_code: Optional[int] = None) -> None:
         """Answer every queued request with ``reason`` and end the running transfer."""
-        with self._changed:
-            jobs = list(self._queue)
-            self._queue.clear()
-        for job in jobs:
+        for job in self._jobs.take_all():
             self._resolve(job, job.failed(SdoResult.failed(reason)))
         self._client.cancel(reason, abort_code)
 
     def close(self, reason: str, abort_code: Optional[int]) -> None:
         """Refuse new requests, fail queued ones and end the running transfer."""
-        with self._changed:
-            self._closed = SdoResult.failed(reason)
-            self._changed.notify()
+        self._jobs.close(SdoResult.failed(reason))
         self.fail_all(reason, abort_code)
 
     def join(self, timeout: float) -> None:
@@ -435,25 +485,22 @@ class SdoChannel:
                 count: Optional[int]) -> Future:
         job = _Job(run, time.monotonic() + timeout, timeout, Future(), count)
         with self._changed:
-            refusal = self._closed
-            if refusal is None and len(self._queue) >= self._queue_limit:
+            refusal = self._jobs.closed
+            if refusal is None and len(self._jobs) >= self._queue_limit:
                 refusal = SdoResult.failed(
                     f'node {self.node_id} is busy: {self._queue_limit} requests are already '
                     f'waiting for it (parameter sdo.queue_limit); nothing was sent',
                     abort_codes.NO_RESOURCE)
             if refusal is None:
-                self._queue.append(job)
+                self._jobs.put(job)
                 job.watch = self._deadlines.watch(job.deadline, lambda: self._expire(job))
-                self._changed.notify()
         if refusal is not None:
             self._resolve(job, job.failed(refusal))
         return job.future
 
     def _expire(self, job: _Job) -> None:
-        with self._changed:
-            if job not in self._queue:
-                return  # running or answered: the transfer keeps its own deadline
-            self._queue.remove(job)
+        if not self._jobs.withdraw(job):
+            return  # running or answered: the transfer keeps its own deadline
         self._resolve(job, job.failed(self._queued_too_long(job)))
 
     def _queued_too_long(self, job: _Job) -> SdoResult:
@@ -463,13 +510,9 @@ class SdoChannel:
 
     def _work(self) -> None:
         while True:
-            with self._changed:
-                while not self._queue and self._closed is None:
-                    self._changed.wait()
-                if not self._queue:
-                    return
-                job = self._queue.popleft()
-                job.started = time.monotonic()
+            job = self._jobs.next(lambda taken: setattr(taken, 'started', time.monotonic()))
+            if job is None:
+                return
             if job.started >= job.deadline:
                 # Its time ran out in the queue; the deadline thread has not answered it yet.
                 self._resolve(job, job.failed(self._queued_too_long(job)))

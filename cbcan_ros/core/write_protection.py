@@ -47,8 +47,8 @@ def parse_rule(text: str) -> WriteRule:
 class WriteProtection:
     """What may be written.
 
-    ``read_only`` refuses every write and NMT command; otherwise ``rules``, if any, list the
-    objects that may be written.
+    ``read_only`` refuses every write, NMT command and LSS service; otherwise ``rules``, if
+    any, list the objects that may be written.
     """
 
     read_only: bool = False
@@ -67,4 +67,11 @@ class WriteProtection:
         """Return why NMT commands are refused, or None."""
         if self.read_only:
             return 'the gateway is read-only (parameter read_only): NMT commands are refused'
+        return None
+
+    def refuses_lss(self) -> Optional[str]:
+        """Return why layer setting services (LSS) are refused, or None."""
+        if self.read_only:
+            return ('the gateway is read-only (parameter read_only): LSS services, which can '
+                    'change node ids and bit rates, are refused')
         return None

@@ -71,8 +71,15 @@ class NodeParameters:
                       'repeated',
                       integer_range=[IntegerRange(from_value=0, to_value=10, step=0)])
         self._declare('read_only', False,
-                      'Refuse every SDO write and NMT command (abort 0x08000021); nothing '
-                      'is sent')
+                      'Refuse every SDO write, NMT command (abort 0x08000021) and LSS '
+                      'service; nothing is sent')
+        self._declare('lss.probe_timeout', 0.0,
+                      'Seconds an LSS Fastscan probe waits for an answer; silence means the '
+                      'probed bit is 1, so every wait costs. 0 = from can.bitrate: two frames '
+                      'on the wire plus 40 ms (at 10 kbit/s when can.bitrate is 0; none on '
+                      'virtual and udp_multicast)',
+                      floating_point_range=[FloatingPointRange(
+                          from_value=0.0, to_value=1.0, step=0.0)])
         self._declare('sdo.write_allow', Parameter.Type.STRING_ARRAY,
                       f'Objects that SDO writes may reach, each {RULE_FORMAT}; empty = all. '
                       'Other writes are refused with abort 0x08000021 and never sent',
@@ -154,7 +161,8 @@ class NodeParameters:
             read_retries=value('sdo.read_retries'),
             write_protection=WriteProtection(
                 value('read_only'), checks.write_rules(self._strings('sdo.write_allow'))),
-            bus_options=bus_options)
+            bus_options=bus_options,
+            lss_probe_timeout=value('lss.probe_timeout'))
 
     def _strings(self, name: str) -> List[str]:
         return list(self._node.get_parameter_or(name, Parameter(name, value=[])).value or [])

@@ -7,7 +7,8 @@ inactive every call gets a clear "inactive" answer and nothing is published.
 An SDO call is handed to the device's worker thread and answered from there when it is done
 (``deferred.py``), so the executor keeps serving other calls, timers and publishers while a
 slow device takes its time, and holds nothing per waiting call. The mailbox, which chains
-several SDOs, runs as a coroutine on its own event loop and is answered the same way.
+several SDOs, runs as a coroutine on its own event loop and is answered the same way, as
+are the LSS services, which run on the core's LSS worker and may take seconds.
 """
 
 import asyncio
@@ -21,12 +22,23 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ..core.gateway import Gateway, SHUTTING_DOWN
+from ..core.lss import Identity, LssResult
 from ..core.nmt import state_name
 from ..core.sdo import Access, check_node_id, resolved, SdoResult
-from ..msg import NodeState, NodeStates
+from ..msg import LssIdentity, NodeState, NodeStates
 from ..msg import SdoResult as SdoResultMessage
 from ..plc.mailbox import Mailbox
-from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
+from ..srv import (
+    LssConfigure,
+    LssInquire,
+    LssScan,
+    NmtCommand,
+    NmtState,
+    RegisterMailbox,
+    SdoBatch,
+    SdoRead,
+    SdoWrite,
+)
 from .config import NodeParameters
 from .deferred import CallsInProgress, CoroutineRunner, DeferredService
 from .diagnostics import Diagnostics
@@ -100,6 +112,25 @@ def _fill_registers(result, response) -> None:
     response.registers, response.message = result
 
 
+def _fill_lss(result: LssResult, response) -> None:
+    """Write an LssResult into the response of any of the three LSS services."""
+    response.success = result.success
+    response.message = result.message
+    if hasattr(response, 'devices'):
+        response.devices = [LssIdentity(vendor_id=d.vendor_id, product_code=d.product_code,
+                                        revision=d.revision, serial=d.serial)
+                            for d in result.devices]
+        response.node_ids = list(result.node_ids)
+    if hasattr(response, 'error_code'):
+        response.error_code = result.error_code
+    if hasattr(response, 'node_id'):
+        response.node_id = result.node_id
+
+
+def _identity(message) -> Identity:
+    return Identity(message.vendor_id, message.product_code, message.revision, message.serial)
+
+
 class GatewayInterface:
     """The gateway's services, topics and timers on ``node``, made from its parameters.
 
@@ -139,7 +170,10 @@ class GatewayInterface:
                 (SdoRead, 'sdo_read', self._start_read, _fill_result),
                 (SdoWrite, 'sdo_write', self._start_write, _fill_result),
                 (SdoBatch, 'sdo_batch', self._start_batch, _fill_result),
-                (RegisterMailbox, 'plc_mailbox', self._start_mailbox, _fill_registers))]
+                (RegisterMailbox, 'plc_mailbox', self._start_mailbox, _fill_registers),
+                (LssScan, 'lss_scan', self._start_lss_scan, _fill_lss),
+                (LssConfigure, 'lss_configure', self._start_lss_configure, _fill_lss),
+                (LssInquire, 'lss_inquire', self._start_lss_inquire, _fill_lss))]
         self._services = [
             node.create_service(service_type, f'~/{name}', callback, **options)
             for service_type, name, callback in (
@@ -249,6 +283,22 @@ class GatewayInterface:
             return resolved((registers, INACTIVE))
         running = self._mailbox_loop.submit(self._execute_mailbox(request.format, registers))
         return running or resolved((registers, SHUTTING_DOWN))
+
+    def _start_lss_scan(self, request) -> Future:
+        if not self.active:
+            return resolved(LssResult(False, INACTIVE))
+        return self.gateway.lss.scan(request.first_node_id, request.store, request.timeout)
+
+    def _start_lss_configure(self, request) -> Future:
+        if not self.active:
+            return resolved(LssResult(False, INACTIVE))
+        return self.gateway.lss.configure(_identity(request.identity), request.node_id,
+                                          request.bitrate, request.store, request.timeout)
+
+    def _start_lss_inquire(self, request) -> Future:
+        if not self.active:
+            return resolved(LssResult(False, INACTIVE))
+        return self.gateway.lss.inquire(_identity(request.identity), request.timeout)
 
     async def _execute_mailbox(self, block_format: str, registers: list):
         if self._shutting_down:  # its turn came after shutdown began: it sent nothing

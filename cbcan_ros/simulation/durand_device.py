@@ -19,6 +19,11 @@ durand 0.5.0 needs a few guards, all kept in this module (durand itself is not p
   master abandons stays open for ever. Both are dropped here.
 - ``CANBusNetwork`` drops remote frames (node guarding) and polls with a 1 s cycle, so
   closing it waits up to 1 s: :class:`_Network` replaces it.
+- LSS (``lss=True``): a durand node with node id 255 (unconfigured) still sends a boot-up
+  message and heartbeats, on 0x7FF; a device without a node id sends nothing but LSS answers,
+  so everything else is held back until it has one. When LSS gives it an id, durand boots it
+  (boot-up, heartbeats, SDO server on the new id), but the SDO guards here stay keyed to
+  the old id: they follow the id on every boot.
 """
 
 import logging
@@ -26,7 +31,7 @@ import sched
 import struct
 import threading
 import time
-from typing import Callable, Dict, Optional, Union
+from typing import Callable, Dict, Optional, Tuple, Union
 
 import can
 import durand
@@ -34,6 +39,7 @@ from durand.datatypes import DatatypeEnum as DT
 from durand.network import NetworkABC
 from durand.node import NodeCapabilities
 from durand.object_dictionary import Record, Variable
+from durand.services.nmt import StateEnum
 from durand.services.sdo.server import SDODomainAbort, TransferState
 
 from ..core import nmt
@@ -53,6 +59,10 @@ NMT_COB = 0x000
 SDO_RX_BASE = 0x600
 SDO_TX_BASE = 0x580
 LSS_MASTER_COB = 0x7E5
+LSS_SLAVE_COB = 0x7E4
+UNCONFIGURED = 0xFF
+IDENTITY_INDEX = 0x1018
+IDENTITY = (0x0, 0x51, 0x10000, 0x0)  # 0x1018:1..4 as config/simulated_device.eds
 
 ABORT_LENGTH_TOO_HIGH = 0x06070012
 
@@ -187,6 +197,7 @@ class _Network(NetworkABC):
         self._subscriptions: Dict[int, Callable] = {}
         self.hooks: Dict[int, Callable] = {}
         self.rewrite: Optional[Callable[[int, bytes], bytes]] = None
+        self.allowed: Callable[[int], bool] = lambda cob_id: True
         self.muted = True  # nothing leaves while the device is being built or after stop
         self._running = False
         self._thread: Optional[threading.Thread] = None
@@ -201,7 +212,7 @@ class _Network(NetworkABC):
 
     def send(self, cob_id: int, msg: bytes) -> None:
         """Send a data frame, unless muted; a bus error is logged, never raised into durand."""
-        if self.muted:
+        if self.muted or not self.allowed(cob_id):
             return
         if self.rewrite is not None:
             msg = self.rewrite(cob_id, msg)
@@ -267,14 +278,27 @@ class DurandDevice:
     Same surface as :class:`cbcan_ros.simulation.SimulatedDevice`: a boot-up message then
     heartbeats (0x1017), NMT commands obeyed (a reset boots again and restores defaults),
     node guarding answered while the heartbeat is off, and the EDS's demo objects.
+
+    With ``lss=True`` it is also an LSS slave (durand's) with ``identity`` (0x1018:1..4);
+    node id 255 makes it unconfigured. ``lss_store`` and ``lss_bit_rates`` say whether it
+    can store its configuration and set a bit rate; without, it refuses with LSS error 1.
+    What it stored is in :attr:`stored`.
     """
 
     #: Seconds of silence after which a transfer a master left open is dropped.
     SDO_SERVER_TIMEOUT = 1.0
 
     def __init__(self, node_id: int, interface: str = 'virtual', channel: str = 'cbcan',
-                 bus_options: Optional[Dict[str, str]] = None, slow_read_delay: float = 0.4):
-        self.node_id = node_id
+                 bus_options: Optional[Dict[str, str]] = None, slow_read_delay: float = 0.4,
+                 lss: bool = False, identity: Tuple[int, int, int, int] = IDENTITY,
+                 lss_store: bool = True, lss_bit_rates: bool = True):
+        self._node_id = node_id
+        self.lss = lss
+        self.identity = tuple(identity)
+        self._lss_store = lss_store
+        self._lss_bit_rates = lss_bit_rates
+        self.stored: Dict[str, Optional[int]] = {}
+        self._sdo_cob = SDO_RX_BASE + node_id
         self.slow_read_delay = slow_read_delay
         self._bus_options = dict(interface=interface, channel=channel, **(bus_options or {}))
         self.node: Optional[durand.Node] = None
@@ -284,6 +308,16 @@ class DurandDevice:
         self._guard_toggle = 0
         self._last_sdo_frame = 0.0
         self._slow_value = 0
+
+    @property
+    def node_id(self) -> int:
+        """Return the node id the device has now (255: unconfigured)."""
+        return self.node.node_id if self.node is not None else self._node_id
+
+    @property
+    def lss_waiting(self) -> bool:
+        """Return whether the device's LSS slave is in the waiting state."""
+        return self.node.lss._state == 0  # durand's LSSState.WAITING
 
     @property
     def state(self) -> int:
@@ -309,12 +343,36 @@ class DurandDevice:
             self._lock = scheduler.lock
             self._bus, self._network, self.node = bus, network, node
             self._build_dictionary(node.object_dictionary)
-            network.remove_subscription(LSS_MASTER_COB)  # the EDS says LSS_Supported=0
+            if self.lss:
+                self._setup_lss(node)
+            else:
+                network.remove_subscription(LSS_MASTER_COB)  # the EDS says LSS_Supported=0
             network.hooks[NMT_COB] = self._on_nmt_frame
-            network.hooks[SDO_RX_BASE + self.node_id] = self._on_sdo_frame
+            network.hooks[self._sdo_cob] = self._on_sdo_frame
+            node.nmt.state_callbacks.add(self._follow_node_id)
             network.muted = False
             network.start()
             self._boot(WHOLE_DICTIONARY, durand_reset=node.nmt.reset)
+
+    def _setup_lss(self, node: durand.Node) -> None:
+        if self._lss_store:
+            node.lss.set_store_configuration_callback(self._store)
+        if self._lss_bit_rates:
+            # Only LSS activate bit timing would call it, which the gateway never sends.
+            node.lss.set_baudrate_change_callback(lambda bitrate, delay: None)
+        self._network.allowed = (lambda cob_id: self.node.node_id != UNCONFIGURED
+                                 or cob_id == LSS_SLAVE_COB)
+
+    def _store(self, bitrate: Optional[int], node_id: int) -> None:
+        self.stored = {'bitrate': bitrate, 'node_id': node_id}
+
+    def _follow_node_id(self, state: StateEnum) -> None:
+        # durand sets the new node id on entering INITIALISATION (a reset, or LSS).
+        cob_id = SDO_RX_BASE + self.node.node_id
+        if state == StateEnum.INITIALISATION and cob_id != self._sdo_cob:
+            self._network.hooks.pop(self._sdo_cob, None)
+            self._network.hooks[cob_id] = self._on_sdo_frame
+            self._sdo_cob = cob_id
 
     def stop(self) -> None:
         """Go silent: cancel this device's timers and close its bus (other devices go on)."""
@@ -399,6 +457,8 @@ class DurandDevice:
         # durand's Node put its own 0x1000/0x1008/0x1017/0x1018 in place; ours replace them.
         records: Dict[int, Record] = {}
         for index, subindex, datatype, access, default, name in OBJECTS:
+            if index == IDENTITY_INDEX:
+                default = self.identity[subindex - 1]
             variable = Variable(datatype, access, default, name=name)
             if subindex:
                 records.setdefault(index, Record(name=RECORD_NAMES[index]))[subindex] = variable
