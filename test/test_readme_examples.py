@@ -71,6 +71,13 @@ NOT_RUN = {
     'ros2 service call /can0/cbcan/sdo_write': 'the ros2 CLI',
     'ros2 service call /can0/cbcan/nmt_command': 'the ros2 CLI',
     'ros2 topic echo /can0/cbcan/emcy': 'the ros2 CLI',
+    'cbcan_cli lss-scan --assign-from 10 --store': 'unconfigured LSS devices, which the '
+                                                   'simulation of make run has not: '
+                                                   'test_lss_process runs these steps',
+    'cbcan_cli lss-inquire 0x319': 'a device with LSS at that identity: test_lss_process runs '
+                                   'these steps',
+    'LssScan request:': 'a summary of srv_defs/srv/LssScan.srv, LssConfigure.srv and '
+                        'LssInquire.srv',
 }
 # Commands of a cbcan_cli block that are not cbcan_cli calls: why they do not run here.
 NOT_RUN_COMMANDS = {
