@@ -22,7 +22,8 @@ from rclpy.parameter import Parameter  # noqa: E402
 from cbcan_ros.msg import NodeStates  # noqa: E402
 from cbcan_ros.ros.interface import NODE_STATES_QOS, SERVICE_QOS  # noqa: E402
 from cbcan_ros.ros.node import CbcanNode  # noqa: E402
-from cbcan_ros.srv import NmtCommand, NmtState, RegisterMailbox, SdoRead, SdoWrite  # noqa: E402
+from cbcan_ros.srv import (  # noqa: E402
+    NmtCommand, NmtState, PdoWrite, RegisterMailbox, SdoRead, SdoWrite)
 
 SERVICE_TYPES = {
     'sdo_read': SdoRead,
@@ -30,6 +31,7 @@ SERVICE_TYPES = {
     'nmt_command': NmtCommand,
     'nmt_state': NmtState,
     'plc_mailbox': RegisterMailbox,
+    'pdo_write': PdoWrite,
 }
 
 DEFAULT_DEVICES = [2, 3, 5]

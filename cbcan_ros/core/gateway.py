@@ -16,9 +16,10 @@ import can
 import canopen
 from canopen import objectdictionary as od
 
-from . import abort_codes, nmt
+from . import abort_codes, eds, nmt
 from .bus import BusDown, BusStatus, BusSupervisor
 from .emcy import EmcyMonitor
+from .pdo import PdoService
 from .sdo import (
     Access,
     check_node_id,
@@ -33,6 +34,7 @@ from .sdo import (
     SdoStatistics,
 )
 from .sdo_client import StrictSdoClient
+from .sync import SyncProducer
 from .write_protection import WriteProtection
 
 LOGGER = logging.getLogger(__name__)
@@ -67,6 +69,11 @@ class GatewayConfig:
     read_retries: int = 0
     write_protection: WriteProtection = WriteProtection()
     bus_options: Dict[str, object] = field(default_factory=dict)
+    pdo_nodes: Tuple[int, ...] = ()
+    pdo_configure: bool = False
+    device_files: Dict[int, str] = field(default_factory=dict)  # node id: EDS/DCF path
+    sync_period: float = 0.0
+    sync_counter_overflow: int = 0
 
 
 @dataclass(frozen=True)
@@ -141,6 +148,13 @@ class Gateway:
         self._guarding = nmt.NodeGuarding(self.network, config.guarded_nodes,
                                           config.guard_period)
         self.emcy = EmcyMonitor(self.network)
+        self.sync = SyncProducer(self.bus, self.network, config.sync_period,
+                                 config.sync_counter_overflow)
+        self.pdo = PdoService(self.network, config.pdo_nodes, self.sdo_batch,
+                              config.write_protection, self.sync,
+                              {node_id: eds.load(path, node_id) for node_id, path
+                               in config.device_files.items() if node_id in config.pdo_nodes},
+                              config.pdo_configure)
         self._deadlines = Deadlines()
         self._channels: Dict[int, SdoChannel] = {}
         self._lock = threading.Lock()
@@ -162,6 +176,8 @@ class Gateway:
         """Open the bus (or keep trying in the background) and watch node states."""
         self.monitor.start()
         self.emcy.start()
+        self.sync.start()
+        self.pdo.start()
         self._guarding.start()
         self.bus.start()
 
@@ -176,6 +192,8 @@ class Gateway:
                 return
             self._closing = True
             channels = list(self._channels.values())
+        self.pdo.stop()
+        self.sync.stop()
         self.bus.restrict_sending(_is_sdo_abort, SHUTTING_DOWN)
         self._guarding.stop()
         for channel in channels:
@@ -275,6 +293,7 @@ class Gateway:
         for channel in channels:
             channel.fail_all(f'the CAN bus is down: {status.reason}')
         self.monitor.lose_all()
+        self.pdo.on_bus_change(status)
 
     def _single(self, access: Access, timeout: float) -> 'Future[SdoResult]':
         problem = check_timeout(timeout)
