@@ -23,7 +23,13 @@ from cbcan_ros.msg import NodeStates  # noqa: E402
 from cbcan_ros.ros.interface import NODE_STATES_QOS, SERVICE_QOS  # noqa: E402
 from cbcan_ros.ros.node import CbcanNode  # noqa: E402
 from cbcan_ros.srv import (  # noqa: E402
-    NmtCommand, NmtState, PdoWrite, RegisterMailbox, SdoRead, SdoWrite)
+    NmtCommand,
+    NmtState,
+    PdoWrite,
+    RegisterMailbox,
+    SdoRead,
+    SdoWrite,  # noqa: E402
+)
 
 SERVICE_TYPES = {
     'sdo_read': SdoRead,

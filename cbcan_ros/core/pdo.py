@@ -345,7 +345,7 @@ class PdoService:
         # gateway gives ("shutting down") right after this; it then installs nothing.
 
     def on_bus_change(self, status: BusStatus) -> None:
-        """A device heard again after the bus was down may have booted meanwhile: re-read."""
+        """Re-read every device heard after the bus was down: it may have booted meanwhile."""
         if status.up:
             return
         with self._lock:
