@@ -15,7 +15,15 @@ from rcl_interfaces.srv import SetParameters
 
 from cbcan_ros.msg import NodeStates, SdoAccess
 from cbcan_ros.ros.interface import NODE_STATES_QOS
-from cbcan_ros.srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
+from cbcan_ros.srv import (
+    NmtCommand,
+    NmtState,
+    PdoWrite,
+    RegisterMailbox,
+    SdoBatch,
+    SdoRead,
+    SdoWrite,
+)
 
 from conftest import wait_until
 from node_process import call, random_bus, service_client
@@ -33,6 +41,7 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
                        '-p', f'can.channel:={group}',
                        '-p', f'simulation.devices:=[{DEVICE}]',
                        '-p', f'nodes:=[{DEVICE}]',
+                       '-p', f'pdo.nodes:=[{DEVICE}]',
                        '-p', 'state_publish_period:=0.2',
                        '-p', 'diagnostics_period:=0.1'], port, 'cbcan_lifecycle_node')
 
@@ -100,6 +109,9 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
         answer = call(client(RegisterMailbox, 'plc_mailbox'), RegisterMailbox.Request(
             format='cbcan', registers=registers), 'plc_mailbox', node)
         assert list(answer.registers) == registers and 'inactive' in answer.message
+        answer = call(client(PdoWrite, 'pdo_write'), PdoWrite.Request(
+            node_id=DEVICE, pdo=1, data=[1, 2, 3]), 'pdo_write', node)
+        assert (answer.success, answer.abort_code) == (False, INACTIVE_ABORT)
 
     refused_while_inactive()
     assert not states and not diagnostics, 'nothing is published before activate'

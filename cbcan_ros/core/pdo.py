@@ -25,6 +25,7 @@ import logging
 import math
 import re
 import struct
+import sys
 import threading
 import time
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
@@ -112,7 +113,12 @@ class MappedEntry:
                 raise ValueError(f'{self.label}: {value} does not fit a '
                                  f'{self.bits}-bit float') from None
         if not math.isfinite(value) or not float(value).is_integer():
-            raise ValueError(f'{self.label}: {value} is not a whole number')
+            hint = ''
+            if 0 < abs(value) < sys.float_info.min:
+                whole = struct.unpack('<q', struct.pack('<d', value))[0]
+                hint = (f' (rclpy sends a Python int put in a float64 field as its bits: '
+                        f'was {whole} meant? Give it as a float, {whole}.0)')
+            raise ValueError(f'{self.label}: {value} is not a whole number{hint}')
         number = int(value)
         signed = self.data_type in _SIGNED
         low = -(1 << (self.bits - 1)) if signed else 0
