@@ -15,6 +15,8 @@ Examples (the gateway started by ``make run`` is ``/can0/cbcan``)::
     cbcan_cli --gateway /robot/can1/cbcan mailbox cbcan 0x0001 ...
     cbcan_cli sdo-batch r:5:0x1000 w:5:0x2002:0:78563412 r:3:0x1008
     cbcan_cli sdo-batch --file accesses.txt
+    cbcan_cli pdo-echo 5                                  # what node 5 sends (its TPDOs)
+    cbcan_cli pdo-write 5 1 "Demo UNSIGNED8=7" 0x2001=300  # node 5's RPDO 1
 
 Objects are given by index (a number) or by the name the node's EDS or DCF file gives them.
 The file is the gateway's parameter ``node_<id>.eds`` (asked of the running gateway) or
@@ -52,11 +54,12 @@ from ..core.values import (
     type_of,
     VALUE_TYPES,
 )
-from ..msg import NodeStates, SdoAccess
+from ..msg import NodeStates, Pdo, PdoEntry, SdoAccess
 from ..plc.mailbox import Cbcan, Me3can
-from ..srv import NmtCommand, NmtState, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
+from ..srv import NmtCommand, NmtState, PdoWrite, RegisterMailbox, SdoBatch, SdoRead, SdoWrite
 from .config import device_file_parameter
 from .interface import NODE_STATES_QOS, SERVICE_QOS
+from .pdo import PDO_QOS
 
 DEFAULT_GATEWAY = '/can0/cbcan'
 DEFAULT_WAIT = 5.0
@@ -238,6 +241,21 @@ class Client:
         response = self.call(GetParameters, 'get_parameters', GetParameters.Request(
             names=[name]), self.wait)
         return parameter_value_to_python(response.values[0]) if response.values else None
+
+    def follow(self, message_type, topic: str, qos, handle, count: int = 0) -> None:
+        """Call ``handle(message)`` for messages of ``gateway/topic``; stop after ``count``.
+
+        ``count`` 0 follows until interrupted (Ctrl-C).
+        """
+        received = []
+        self._node.create_subscription(message_type, f'{self.gateway}/{topic}',
+                                       received.append, qos)
+        handled = 0
+        while not count or handled < count:
+            self._executor.spin_once(timeout_sec=0.1)
+            while received and (not count or handled < count):
+                handle(received.pop(0))
+                handled += 1
 
     def receive_states(self):
         """Return one NodeStates message from the latched ``node_states`` topic."""
@@ -471,6 +489,71 @@ def cmd_nmt(client: Client, args) -> int:
     return 0
 
 
+def _pdo_value(entry) -> str:
+    if entry.index in range(1, 8):
+        return 'dummy'
+    value = entry.value
+    return str(int(value)) if math.isfinite(value) and value.is_integer() else repr(value)
+
+
+def describe_pdo(message) -> str:
+    """Return one line for a received PDO: number, COB-ID, bytes, then each entry's value."""
+    entries = ' '.join(f'{entry.name or f"0x{entry.index:04X}:{entry.subindex}"}='
+                       f'{_pdo_value(entry)}' for entry in message.entries)
+    return (f'TPDO {message.pdo} 0x{message.cob_id:03X} [{len(message.data)}] '
+            f'{bytes(message.data).hex(" ").upper()} | {entries}')
+
+
+def cmd_pdo_echo(client: Client, args) -> int:
+    """Print what a device sends (its TPDOs, the gateway's ~/node_<id>/rpdo topic)."""
+    client.follow(Pdo, f'node_{args.node}/rpdo', PDO_QOS,
+                  lambda message: print(describe_pdo(message), flush=True), args.count)
+    return 0
+
+
+def _pdo_entry(client: Client, args, assignment: str) -> PdoEntry:
+    """Return the entry of one NAME_OR_INDEX=VALUE (an index as 0x6040 or 0x6040:0)."""
+    target, equals, text = assignment.rpartition('=')
+    if not equals or not target.strip() or not text.strip():
+        raise UsageError(f'{quoted(assignment)} is not NAME_OR_INDEX=VALUE, e.g. '
+                         f'0x6040=15 or "Controlword=15"')
+    index_text, _, sub_text = target.partition(':')
+    try:
+        index, subindex = parse_integer(index_text), parse_integer(sub_text or '0')
+    except ValueError:
+        args.object = target.strip()
+        found, _ = _named(client, args, [])
+        index, subindex = found.index, found.subindex
+    if not 0 <= index <= 0xFFFF or not 0 <= subindex <= 0xFF:
+        raise UsageError(f'{quoted(target)}: index 0x0000..0xFFFF, sub-index 0..255')
+    try:
+        value = float(parse_integer(text))
+    except ValueError:
+        try:
+            value = float(text)
+        except ValueError:
+            raise UsageError(f'{quoted(assignment)}: {quoted(text)} is not a number') from None
+    return PdoEntry(index=index, subindex=subindex, value=value)
+
+
+def cmd_pdo_write(client: Client, args) -> int:
+    """Send a device's RPDO with the values given (the others keep their last value)."""
+    if bool(args.assignments) == bool(args.data):
+        raise UsageError('give NAME_OR_INDEX=VALUE assignments or --data HEXBYTES, not both '
+                         'nor neither')
+    try:
+        data = encode_value([args.data], 'hex') if args.data else b''
+    except ValueError as error:
+        raise UsageError(f'--data: {error}') from None
+    entries = [_pdo_entry(client, args, assignment) for assignment in args.assignments]
+    response = client.call(PdoWrite, 'pdo_write', PdoWrite.Request(
+        node_id=args.node, pdo=args.pdo, entries=entries, data=list(data)), client.wait)
+    if not response.success:
+        return _failed(response)
+    print(f'ok: RPDO {args.pdo} of node {args.node} sent')
+    return 0
+
+
 def _age(seconds: float) -> str:
     return 'never' if seconds < 0 else f'{seconds:.2f} s ago'
 
@@ -630,6 +713,34 @@ def build_parser() -> argparse.ArgumentParser:
                               'a shorter block is padded with zeros to its full length')
     mailbox.add_argument('--decimal', action='store_true', help='print words in decimal')
     mailbox.set_defaults(run=cmd_mailbox)
+    echo = commands.add_parser('pdo-echo', help="print a device's PDOs as they arrive",
+                               description='Print every PDO a device sends (its TPDOs, on '
+                                           "the gateway's ~/node_<id>/rpdo topic), decoded by "
+                                           'its mapping, by EDS names where the gateway has '
+                                           'node_<id>.eds. Ctrl-C ends it.')
+    echo.add_argument('node', type=_ranged('node', 1, MAX_NODE_ID), metavar='NODE',
+                      help='node id 1..127 (one of the gateway parameter pdo.nodes)')
+    echo.add_argument('--count', type=_ranged('count', 0, 1 << 31), default=0, metavar='N',
+                      help='stop after N PDOs (default 0: until Ctrl-C)')
+    echo.set_defaults(run=cmd_pdo_echo)
+
+    pdo_write = commands.add_parser('pdo-write', help="send a device's RPDO",
+                                    description="Send a device's RPDO (its receive PDO). "
+                                                'Mapped objects not given keep the value last '
+                                                'sent (0 at first). Names come from the '
+                                                "node's EDS.")
+    pdo_write.add_argument('node', type=_ranged('node', 1, MAX_NODE_ID), metavar='NODE',
+                           help='node id 1..127 (one of the gateway parameter pdo.nodes)')
+    pdo_write.add_argument('pdo', type=_ranged('pdo', 1, 512), metavar='PDO',
+                           help="the device's RPDO number 1..512")
+    pdo_write.add_argument('assignments', nargs='*', metavar='NAME_OR_INDEX=VALUE',
+                           help='e.g. 0x6040=15, 0x607A:0=-1000 or "Controlword=15"')
+    pdo_write.add_argument('--data', metavar='HEXBYTES',
+                           help='the whole frame instead, as on the bus (e.g. 0F00E8030000)')
+    pdo_write.add_argument('--eds', metavar='FILE',
+                           help="EDS or DCF naming the node's objects (default: the gateway's "
+                                'node_<id>.eds)')
+    pdo_write.set_defaults(run=cmd_pdo_write)
     return parser
 
 
