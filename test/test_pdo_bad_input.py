@@ -18,11 +18,10 @@ from hypothesis import given, HealthCheck, settings
 from hypothesis import strategies as st
 import pytest
 
-from cbcan_ros.core.pdo import (decode, EntryValue, MAX_BITS, parse_mapping, PdoService,
-                                ReceivedPdo)
+from cbcan_ros.core.pdo import decode, EntryValue, MAX_BITS, parse_mapping, PdoService, ReceivedPdo
 from cbcan_ros.core.write_protection import WriteProtection
 from cbcan_ros.msg import Pdo, PdoEntry
-from cbcan_ros.ros.pdo import PDO_QOS, pdo_message
+from cbcan_ros.ros.pdo import pdo_message, PDO_QOS
 from cbcan_ros.simulation.durand_device import DurandDevice, PdoConfig
 
 from conftest import new_channel, wait_for_future, wait_until

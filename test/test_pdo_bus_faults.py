@@ -7,14 +7,14 @@ with it, and the mapping is read again once the device is heard again.
 
 import threading
 
-import faulty_bus
-from faulty_bus import FaultController
 import pytest
 
 from cbcan_ros.msg import PdoEntry
 from cbcan_ros.simulation.durand_device import DurandDevice, PdoConfig
 
 from conftest import new_channel, wait_for_future, wait_until
+import faulty_bus
+from faulty_bus import FaultController
 from node_process import EDS
 
 faulty_bus.register()
