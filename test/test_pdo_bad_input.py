@@ -96,7 +96,7 @@ def test_any_mapping_and_frame_decode_to_exactly_the_frames_bits(mapped, frame, 
             assert decoded.value == float(raw - (1 << entry.bits))
         else:
             assert decoded.value == float(raw)
-        message = pdo_message(ReceivedPdo(mapping, frame, 0.0, decode(mapping, frame)))
+        message = pdo_message(ReceivedPdo(mapping, frame, 0.0))
         assert bytes(message.data) == frame
 
 

@@ -8,8 +8,9 @@ calls. With ``pdo.configure`` the PDO parameters of the device's EDS/DCF file ar
 first whenever it boots.
 
 The device's transmit PDOs arrive through ``network.subscribe`` with the host's monotonic
-receive time and are decoded here (bit-exact, any entry width up to 64 bits, types from the
-EDS when given, else unsigned); listeners get each :class:`ReceivedPdo` in the bus thread.
+receive time; the bus thread only checks a frame's length and hands it to the listeners as a
+:class:`ReceivedPdo`, which is decoded when read (bit-exact, any entry width up to 64 bits,
+types from the EDS when given, else unsigned), in the listener's own thread.
 Its receive PDOs are sent on request: asynchronous ones at once, synchronous ones right after
 a SYNC the gateway produces (``sync.py``).
 
@@ -168,7 +169,9 @@ class PdoMapping:
         return self.transmission_type <= SYNCHRONOUS_MAX
 
 
-@dataclass(frozen=True)
+# The two classes made for every received frame are plain slotted classes: a frozen
+# dataclass costs several times as much to build, in the bus thread.
+@dataclass(slots=True)
 class DecodedEntry:
     """One mapped object's value in a received frame."""
 
@@ -177,14 +180,21 @@ class DecodedEntry:
     data: bytes
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class ReceivedPdo:
-    """One frame a device sent on one of its TPDOs, decoded."""
+    """One frame a device sent on one of its TPDOs, at least as long as its mapping.
+
+    Decoded when ``entries`` is read (by the publishing thread, not the bus thread).
+    """
 
     mapping: PdoMapping
     data: bytes
     timestamp: float  # time.monotonic() when the bus thread took the frame
-    entries: Tuple[DecodedEntry, ...]
+
+    @property
+    def entries(self) -> Tuple[DecodedEntry, ...]:
+        """Return every mapped entry decoded, in mapping order."""
+        return decode(self.mapping, self.data)
 
 
 @dataclass(frozen=True)
@@ -322,7 +332,7 @@ class PdoService:
         return list(self._devices)
 
     def add_listener(self, listener: Callable[[ReceivedPdo], None]) -> None:
-        """Call ``listener(received)`` for every decoded frame (from the bus thread)."""
+        """Call ``listener(received)`` for every frame received (from the bus thread)."""
         self._listeners.append(listener)
 
     def start(self) -> None:
@@ -643,7 +653,7 @@ class PdoService:
             return
         device.received += 1
         device.last_received[mapping.number] = timestamp
-        received = ReceivedPdo(mapping, bytes(data), timestamp, decode(mapping, bytes(data)))
+        received = ReceivedPdo(mapping, bytes(data), timestamp)
         for listener in self._listeners:
             listener(received)
 
