@@ -16,13 +16,13 @@ import math
 import queue
 import threading
 import time
-from typing import Callable, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..core.pdo import EntryValue, MAX_PDOS, PdoService, ReceivedPdo
+from ..core.pdo import EntryValue, MAX_PDOS, PdoMapping, PdoService, ReceivedPdo
 from ..msg import Pdo, PdoEntry
 
 LOGGER = logging.getLogger(__name__)
@@ -50,31 +50,26 @@ def _stamp(monotonic: float) -> Time:
     return Time(sec=whole, nanosec=min(int((wall - whole) * 1e9), 999_999_999))
 
 
-def pdo_message(received: ReceivedPdo) -> Pdo:
+def pdo_message(received: ReceivedPdo, reused: Optional[Pdo] = None) -> Pdo:
     """Return the ``cbcan_ros/msg/Pdo`` of one received frame.
 
-    Fields are assigned one by one: on the hot path that costs half of the keyword
-    constructors, which check every field again.
+    ``reused``, a message made before for the same mapping, is filled in again: only the
+    stamp, the bytes and the values change, and rclpy copies a message when it publishes it.
+    On the hot path that halves the cost of building one (its setters check every field).
     """
-    mapping = received.mapping
-    message = Pdo()
+    message = reused
+    if message is None:
+        mapping = received.mapping
+        message = Pdo(node_id=mapping.node_id, pdo=mapping.number, cob_id=mapping.cob_id,
+                      entries=[PdoEntry(index=entry.index, subindex=entry.subindex,
+                                        name=entry.name, data_type=entry.data_type,
+                                        bits=entry.bits)
+                               for entry in mapping.entries])
     message.stamp = _stamp(received.timestamp)
-    message.node_id = mapping.node_id
-    message.pdo = mapping.number
-    message.cob_id = mapping.cob_id
     message.data = received.data
-    entries = []
-    for decoded in received.entries:
-        entry, mapped = PdoEntry(), decoded.entry
-        entry.index = mapped.index
-        entry.subindex = mapped.subindex
-        entry.name = mapped.name
-        entry.data_type = mapped.data_type
+    for entry, decoded in zip(message.entries, received.entries, strict=True):
         entry.value = decoded.value
         entry.data = decoded.data
-        entry.bits = mapped.bits
-        entries.append(entry)
-    message.entries = entries
     return message
 
 
@@ -139,14 +134,24 @@ class PdoTopics:
 
     def _publish_queued(self) -> None:
         failures = set()
+        messages: Dict[Tuple[int, int], Tuple[PdoMapping, Pdo]] = {}
         while True:
             received = self._queue.get()
             if received is None or self._closing:
                 return
             if not self._active():
                 continue
+            mapping = received.mapping
+            publisher = self._publishers[mapping.node_id]
+            if not publisher.get_subscription_count():
+                continue  # volatile: nobody would ever get it, so it costs nothing
             try:
-                self._publishers[received.mapping.node_id].publish(pdo_message(received))
+                # One message per PDO, filled again for each frame (the thread's own).
+                kept = messages.get((mapping.node_id, mapping.number))
+                message = pdo_message(received, kept[1] if kept and kept[0] is mapping
+                                      else None)
+                messages[(mapping.node_id, mapping.number)] = (mapping, message)
+                publisher.publish(message)
             except Exception as error:  # noqa: BLE001 - one bad publication, not the rest
                 kind = type(error).__name__
                 if kind not in failures:
