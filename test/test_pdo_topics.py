@@ -331,3 +331,25 @@ def test_frame_of_a_mapping_longer_than_the_frame_is_not_published(rig):
     finally:
         bus.shutdown()
     assert all(len(message.data) >= 6 for message in recorders[10].of(1))
+
+
+def test_pdo_configure_refused_by_read_only_still_reads_the_devices_mapping(make_gateway,
+                                                                           caplog):
+    channel = new_channel()
+    device = DurandDevice(10, channel=channel, pdos=PDOS)
+    device.start()
+    try:
+        gateway = make_gateway(can__channel=channel, simulation__devices=None, pdo__nodes=[10],
+                               pdo__configure=True, node_10__eds=EDS, nodes=[10],
+                               read_only=True)
+        device.stop()
+        device.start()  # power cycled: it boots (read_only refuses an NMT reset)
+        wait_until(lambda: any('PDO parameters not written' in record.message and
+                               '0x08000021' in record.message for record in caplog.records),
+                   PROMPT, 'the refused configuration logged')
+        wait_until(lambda: gateway.node.gateway.pdo.mappings(10)[0].get(1) is not None,
+                   PROMPT, "the device's own mapping read")
+        assert [entry.index for entry in gateway.node.gateway.pdo.mappings(10)[0][1].entries] \
+            == [0x2001, 0x2003]
+    finally:
+        device.stop()

@@ -526,9 +526,14 @@ class PdoService:
 
     def _read_device(self, device: _Device, request: int, configure: bool) -> None:
         node_id = device.node_id
-        try:
-            if configure and device.dictionary is not None:
+        if configure and device.dictionary is not None:
+            try:
                 self._write_configuration(device)
+            except _ReadFailed as error:
+                # What the device has is still worth reading: it is what it will send.
+                self._log_once(node_id, 'configure', f'node {node_id}: PDO parameters not '
+                               f'written: {error}; the mapping the device has is used')
+        try:
             tpdos = self._read_kind(device, 'tpdo', TPDO_COMMUNICATION, TPDO_MAPPING)
             rpdos = self._read_kind(device, 'rpdo', RPDO_COMMUNICATION, RPDO_MAPPING)
         except _ReadFailed as error:
