@@ -77,7 +77,6 @@ def row_published_none_lost(seconds: float) -> Dict:
 
     from cbcan_ros.msg import Pdo
     from cbcan_ros.ros.node import CbcanNode
-    from cbcan_ros.ros.pdo import PDO_QOS
 
     channel = f'bench-pdo-{uuid.uuid4().hex[:8]}'
     node_ids = list(range(1, 33))
@@ -158,10 +157,12 @@ class UdpNode:
             env={**os.environ, 'CAN_CONFIG': json.dumps({'port': self.port})})
 
     def bus(self):
+        """Return a raw python-can bus on the node's udp_multicast channel."""
         import can
         return can.Bus(interface='udp_multicast', channel=self.group, port=self.port)
 
     def close(self) -> None:
+        """End the node process."""
         self.process.terminate()
         self.process.wait(10)
         self._log.close()
