@@ -216,7 +216,7 @@ def rows_in_own_process(seconds: float) -> Dict[str, Dict]:
             message = bus.recv(0.1)
             if message is not None and message.arbitration_id == 0x80:
                 syncs.append(time.monotonic())
-        errors = [abs((b - a) - 0.01) for a, b in zip(syncs, syncs[1:])]
+        errors = [abs((b - a) - 0.01) for a, b in zip(syncs, syncs[1:], strict=False)]
         rows['sync'] = {'value': percentile(errors, 0.99) * 1000 if errors else None,
                         'unit': 'ms p99 period error', 'samples': len(errors)}
 
