@@ -218,11 +218,15 @@ def test_a_device_reset_mid_run_is_read_again_and_flows_with_its_new_mapping(rig
     start_devices(gateway, 10)
     recorders[10].next_of(1)
     # Its stored parameters change (as a tool would), then it resets: new mapping at boot.
-    devices[10].configure_pdos([PdoConfig('tpdo', 1, ((0x2003, 0), (0x2000, 0)), 1)])
-    assert gateway.call('nmt_command', node_id=10, command=129).success
-    wait_until(lambda: [e.index for e in
-                        gateway.node.gateway.pdo.mappings(10)[0][1].entries] == [0x2003, 0x2000],
-               PROMPT, 'the new mapping read after the boot-up')
+    # TPDO 2 disabled too: a PDO that is off is read, and re-read, without subscribing to it.
+    for first in (0x2002, 0x2003):
+        devices[10].configure_pdos([PdoConfig('tpdo', 1, ((first, 0), (0x2000, 0)), 1),
+                                    PdoConfig('tpdo', 2, ((0x2002, 0),), 254, enabled=False)])
+        assert gateway.call('nmt_command', node_id=10, command=129).success
+        wait_until(lambda first=first: [
+            e.index for e in gateway.node.gateway.pdo.mappings(10)[0][1].entries] ==
+            [first, 0x2000], PROMPT, 'the new mapping read after the boot-up')
+    assert not gateway.node.gateway.pdo.mappings(10)[0][2].enabled
     start_devices(gateway, 10)
     message = recorders[10].next_of(1)
     assert [(entry.index, entry.value) for entry in message.entries] == [

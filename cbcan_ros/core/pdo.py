@@ -320,6 +320,7 @@ class PdoService:
         self._devices = {node_id: _Device(node_id, dictionaries.get(node_id))
                          for node_id in sorted(set(node_ids))}
         self._by_cob: Dict[int, PdoMapping] = {}
+        self._subscribed: set = set()
         self._listeners: List[Callable[[ReceivedPdo], None]] = []
         self._closing = False
         self._pending_sync: Dict[Tuple[int, int], List[Future]] = {}
@@ -348,17 +349,29 @@ class PdoService:
             self._closing = True
             pending, self._pending_sync = self._pending_sync, {}
             self._lock.notify_all()
-            cobs = list(self._by_cob)
             self._by_cob.clear()
+            self._follow_cob_ids()
         for futures in pending.values():
             for future in futures:
                 answer(future, SdoResult.failed(f'{SHUTTING_DOWN}; it was not sent'))
         for node_id in self._devices:
             self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
-        for cob_id in cobs:
-            self._network.unsubscribe(cob_id, self._on_frame)
         # The mapping reader is not waited for: it may wait for an SDO answer, which the
         # gateway gives ("shutting down") right after this; it then installs nothing.
+
+    def _follow_cob_ids(self) -> None:
+        """Subscribe to exactly the COB-IDs of ``_by_cob`` (called with the lock held).
+
+        Under the lock, so a mapping installed while shutting down is never left subscribed,
+        and each COB-ID is subscribed once, whatever the devices map (canopen would call a
+        callback subscribed twice twice).
+        """
+        wanted = set(self._by_cob)
+        for cob_id in self._subscribed - wanted:
+            self._network.unsubscribe(cob_id, self._on_frame)
+        for cob_id in wanted - self._subscribed:
+            self._network.subscribe(cob_id, self._on_frame)
+        self._subscribed = wanted
 
     def on_bus_change(self, status: BusStatus) -> None:
         """Re-read every device heard after the bus was down: it may have booted meanwhile."""
@@ -557,13 +570,10 @@ class PdoService:
                                    f'{time.strftime("%H:%M:%S")}')
             for cob_id in old:
                 self._by_cob.pop(cob_id, None)
-            new = [mapping for mapping in tpdos.values() if mapping.enabled]
-            for mapping in new:
-                self._by_cob[mapping.cob_id] = mapping
-        for cob_id in old:
-            self._network.unsubscribe(cob_id, self._on_frame)
-        for mapping in new:
-            self._network.subscribe(mapping.cob_id, self._on_frame)
+            for mapping in tpdos.values():
+                if mapping.enabled:
+                    self._by_cob[mapping.cob_id] = mapping
+            self._follow_cob_ids()
         device.logged.discard('mapping')
         LOGGER.info('node %d: PDO mapping read: %s', node_id, ', '.join(
             _describe(mapping) for mapping in [*tpdos.values(), *rpdos.values()]) or 'no PDOs')

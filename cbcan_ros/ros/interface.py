@@ -268,8 +268,13 @@ class GatewayInterface:
         if problem:
             self.gateway.pdo.refuse(node_id, f'{topic}: {problem}')
             return
-        written = self.gateway.pdo.write(node_id, message.pdo, entry_values(message.entries),
-                                         bytes(message.data))
+        try:
+            written = self.gateway.pdo.write(node_id, message.pdo,
+                                             entry_values(message.entries), bytes(message.data))
+        except Exception as error:  # noqa: BLE001 - it would end the node's executor
+            self.gateway.pdo.refuse(node_id, f'{topic}: internal error of the gateway: '
+                                             f'{type(error).__name__}: {error}')
+            return
         written.add_done_callback(lambda done: self._log_refused(node_id, topic, done))
 
     def _log_refused(self, node_id: int, topic: str, done: Future) -> None:
