@@ -203,12 +203,24 @@ def test_a_stopped_device_sends_no_pdos_and_flows_again_when_started(rig):
     gateway, devices, recorders = rig()
     start_devices(gateway, 10)
     recorders[10].next_of(1)
-    assert gateway.call('nmt_command', node_id=10, command=2).success
-    gateway.wait_for_states({10: 'STOPPED'})
-    time.sleep(0.05)  # a frame already on its way when the state was published
-    count = len(recorders[10].messages)
-    time.sleep(10 * SYNC_PERIOD)  # ten SYNCs: a running device would have sent ten TPDOs
-    assert len(recorders[10].messages) == count
+    bus = gateway.raw_bus()
+    try:
+        assert gateway.call('nmt_command', node_id=10, command=2).success
+        gateway.wait_for_states({10: 'STOPPED'})
+        stopped_at = time.time()
+        while bus.recv(0) is not None:
+            pass  # frames from before the state was reported
+        frames = []
+        while frames.count(0x80) < 10:  # ten SYNCs: a running device sends ten TPDO 1
+            message = bus.recv(PROMPT)
+            assert message is not None, 'no SYNC'
+            frames.append(message.arbitration_id)
+    finally:
+        bus.shutdown()
+    assert not [cob for cob in frames if cob in (0x18A, 0x28A)], frames
+    late = [message for message in recorders[10].messages
+            if message.stamp.sec + message.stamp.nanosec * 1e-9 > stopped_at]
+    assert not late, 'a PDO published that arrived after the device was STOPPED'
     start_devices(gateway, 10)
     recorders[10].next_of(1)
 
