@@ -304,9 +304,10 @@ class _Device:
 class PdoService:
     """The PDOs of the devices in ``node_ids``, on the gateway's network.
 
-    ``sdo_batch(accesses, timeout)`` is the gateway's, so mapping reads and configuration
-    writes go through its SDO channels and its write protection; ``send(cob_id, data)`` sends
-    a frame (raising BusDown); ``sync`` is the gateway's SYNC producer.
+    ``sdo_batch(accesses)`` is the gateway's, so mapping reads and configuration writes go
+    through its SDO channels and its write protection; frames go out through the network's
+    ``send_message`` (the bus supervisor: BusDown when there is no bus); ``sync`` is the
+    gateway's SYNC producer, which synchronous RPDOs wait for.
     """
 
     def __init__(self, network, node_ids: Sequence[int], sdo_batch, write_protection,
