@@ -9,7 +9,8 @@ reported, never fatal.
 2. Frame to subscriber latency at 2,000 frames/s, the installed ``cbcan_node`` in its own
    process on ``udp_multicast``: the frame carries its send time (CLOCK_MONOTONIC is one clock
    for every process of the machine), the subscriber in this process takes the difference.
-3. SYNC at 10 ms produced by that node: the period error between SYNCs at a raw receiver.
+3. SYNC at 10 ms produced by that node: the period error between SYNCs at a raw receiver,
+   by the kernel's receive timestamps of its socket (udp_multicast's message timestamps).
 4. Topic to frame: a Pdo published on ``~/node_1/tpdo`` carrying its send time, until the RPDO
    frame arrives at a raw receiver.
 5. The node's CPU while 8 devices send 2 TPDOs each at 100 Hz (1,600 frames/s), from /proc.
@@ -215,7 +216,9 @@ def rows_in_own_process(seconds: float) -> Dict[str, Dict]:
         while time.monotonic() < end:
             message = bus.recv(0.1)
             if message is not None and message.arbitration_id == 0x80:
-                syncs.append(time.monotonic())
+                # The socket's kernel receive time: when the SYNC reached this receiver, not
+                # when this (loaded) process got round to reading it.
+                syncs.append(message.timestamp)
         errors = [abs((b - a) - 0.01) for a, b in zip(syncs, syncs[1:], strict=False)]
         rows['sync'] = {'value': percentile(errors, 0.99) * 1000 if errors else None,
                         'unit': 'ms p99 period error', 'samples': len(errors)}
