@@ -334,7 +334,7 @@ def test_pdo_configure_writes_the_files_parameters_at_boot(make_gateway):
         device.stop()
 
 
-def test_frame_of_a_mapping_longer_than_the_frame_is_not_published(rig):
+def test_a_frame_shorter_than_its_mapping_is_counted_and_not_published(rig):
     gateway, devices, recorders = rig()
     bus = can.Bus(interface='virtual', channel=gateway.channel)
     try:
