@@ -76,6 +76,7 @@ cli: build
 bench: build
 	$(ROS_ENV) python $(ROOT)/bench/bench_sdo.py $(ARGS)
 	$(ROS_ENV) python $(ROOT)/bench/bench_lss.py $(filter --quick,$(ARGS))
+	$(ROS_ENV) python $(ROOT)/bench/bench_pdo.py $(ARGS)
 
 clean:
 	rm -rf $(ROOT)/build $(ROOT)/install $(ROOT)/log $(ROOT)/.pytest_cache

@@ -28,6 +28,7 @@ from cbcan_ros.srv import (  # noqa: E402
     LssScan,
     NmtCommand,
     NmtState,
+    PdoWrite,
     RegisterMailbox,
     SdoRead,
     SdoWrite,
@@ -42,6 +43,7 @@ SERVICE_TYPES = {
     'lss_scan': LssScan,
     'lss_configure': LssConfigure,
     'lss_inquire': LssInquire,
+    'pdo_write': PdoWrite,
 }
 
 DEFAULT_DEVICES = [2, 3, 5]

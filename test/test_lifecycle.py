@@ -21,6 +21,7 @@ from cbcan_ros.srv import (
     LssScan,
     NmtCommand,
     NmtState,
+    PdoWrite,
     RegisterMailbox,
     SdoBatch,
     SdoRead,
@@ -43,6 +44,7 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
                        '-p', f'can.channel:={group}',
                        '-p', f'simulation.devices:=[{DEVICE}]',
                        '-p', f'nodes:=[{DEVICE}]',
+                       '-p', f'pdo.nodes:=[{DEVICE}]',
                        '-p', 'state_publish_period:=0.2',
                        '-p', 'diagnostics_period:=0.1'], port, 'cbcan_lifecycle_node')
 
@@ -119,6 +121,9 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
                 (LssInquire, 'lss_inquire', LssInquire.Request(identity=LssIdentity()))):
             answer = call(client(service_type, service), request, service, node)
             assert not answer.success and 'inactive' in answer.message
+        answer = call(client(PdoWrite, 'pdo_write'), PdoWrite.Request(
+            node_id=DEVICE, pdo=1, data=[1, 2, 3]), 'pdo_write', node)
+        assert (answer.success, answer.abort_code) == (False, INACTIVE_ABORT)
 
     refused_while_inactive()
     assert not states and not diagnostics, 'nothing is published before activate'

@@ -193,6 +193,24 @@ class BusSupervisor:
         with self._lock:
             self._sent += 1
 
+    def send_periodic(self, messages: List[can.Message], period: float):
+        """Start python-can's periodic sending of ``messages`` (in turn) on the bus open now.
+
+        Returns the python-can task; raise :class:`BusDown` when there is no usable bus. The
+        task is bound to this bus: the caller stops it when the bus goes down and starts a
+        new one when it is back (closing the bus stops it too).
+        """
+        with self._lock:
+            if self._send_gate is not None and not all(map(self._send_gate, messages)):
+                raise BusDown(self._gate_reason)
+            bus = self._bus
+            if bus is None or not self._up:
+                raise BusDown(f'the CAN bus is down: {self._reason}')
+            try:
+                return bus.send_periodic(messages, period)
+            except Exception as error:  # noqa: BLE001 - any driver failure is a bus fault
+                raise BusDown(f'periodic sending failed: {error}') from error
+
     def _report_fault(self, bus: can.BusABC, reason: str) -> None:
         with self._lock:
             if self._bus is not bus or not self._up:

@@ -16,10 +16,11 @@ import can
 import canopen
 from canopen import objectdictionary as od
 
-from . import abort_codes, lss, nmt
+from . import abort_codes, eds, lss, nmt
 from .bus import BusDown, BusStatus, BusSupervisor
 from .canopen_gaps import StrictSdoClient, without_heartbeat_producer
 from .emcy import EmcyMonitor
+from .pdo import PdoService
 from .sdo import (
     Access,
     check_node_id,
@@ -33,6 +34,7 @@ from .sdo import (
     SdoResult,
     SdoStatistics,
 )
+from .sync import SyncProducer
 from .write_protection import WriteProtection
 
 LOGGER = logging.getLogger(__name__)
@@ -68,6 +70,11 @@ class GatewayConfig:
     write_protection: WriteProtection = WriteProtection()
     bus_options: Dict[str, object] = field(default_factory=dict)
     lss_probe_timeout: float = 0.0  # 0: derived from the bit rate
+    pdo_nodes: Tuple[int, ...] = ()
+    pdo_configure: bool = False
+    device_files: Dict[int, str] = field(default_factory=dict)  # node id: EDS/DCF path
+    sync_period: float = 0.0
+    sync_counter_overflow: int = 0
 
 
 @dataclass(frozen=True)
@@ -145,6 +152,13 @@ class Gateway:
         self._guarding = nmt.NodeGuarding(self.network, config.guarded_nodes,
                                           config.guard_period)
         self.emcy = EmcyMonitor(self.network)
+        self.sync = SyncProducer(self.bus, self.network, config.sync_period,
+                                 config.sync_counter_overflow)
+        self.pdo = PdoService(self.network, config.pdo_nodes, self.sdo_batch,
+                              config.write_protection, self.sync,
+                              {node_id: eds.load(path, node_id) for node_id, path
+                               in config.device_files.items() if node_id in config.pdo_nodes},
+                              config.pdo_configure)
         self._deadlines = Deadlines()
         self.lss = lss.LssMaster(
             self.network, self._deadlines,
@@ -173,6 +187,8 @@ class Gateway:
         """Open the bus (or keep trying in the background) and watch node states."""
         self.monitor.start()
         self.emcy.start()
+        self.sync.start()
+        self.pdo.start()
         self._guarding.start()
         self.lss.start()
         self.bus.start()
@@ -188,6 +204,8 @@ class Gateway:
                 return
             self._closing = True
             channels = list(self._channels.values())
+        self.pdo.stop()
+        self.sync.stop()
         self.bus.restrict_sending(_closes_a_running_operation, SHUTTING_DOWN)
         self._guarding.stop()
         self.lss.close(SHUTTING_DOWN)
@@ -298,6 +316,7 @@ class Gateway:
             channel.fail_all(f'the CAN bus is down: {status.reason}')
         self.lss.fail_all(f'the CAN bus is down: {status.reason}')
         self.monitor.lose_all()
+        self.pdo.on_bus_change(status)
 
     def _single(self, access: Access, timeout: float) -> 'Future[SdoResult]':
         problem = check_timeout(timeout)

@@ -18,6 +18,8 @@ Examples (the gateway started by ``make run`` is ``/can0/cbcan``)::
     cbcan_cli lss-scan --assign-from 10 --store
     cbcan_cli lss-inquire 0x319 0x51 0x10000 7
     cbcan_cli lss-configure 0x319 0x51 0x10000 7 --node-id 12 --store
+    cbcan_cli pdo-echo 5                                  # what node 5 sends (its TPDOs)
+    cbcan_cli pdo-write 5 1 "Demo UNSIGNED8=7" 0x2001=300  # node 5's RPDO 1
 
 Objects are given by index (a number) or by the name the node's EDS or DCF file gives them.
 The file is the gateway's parameter ``node_<id>.eds`` (asked of the running gateway) or
@@ -39,6 +41,7 @@ from typing import List, Optional, Sequence, Tuple
 from canopen.objectdictionary import ObjectDictionary, ODVariable
 from rcl_interfaces.srv import GetParameters
 import rclpy
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import parameter_value_to_python
 
 from ..core import eds, lss
@@ -54,9 +57,9 @@ from ..core.values import (
     type_of,
     VALUE_TYPES,
 )
-from ..msg import LssIdentity, SdoAccess
+from ..msg import LssIdentity, Pdo, PdoEntry, SdoAccess
 from ..plc.mailbox import Cbcan, Me3can
-from ..srv import LssConfigure, LssInquire, LssScan, RegisterMailbox
+from ..srv import LssConfigure, LssInquire, LssScan, PdoWrite, RegisterMailbox
 from .client import (
     ANSWER_MARGIN,
     answer_within,
@@ -69,6 +72,7 @@ from .client import (
     RequestFailed,
 )
 from .config import device_file_parameter
+from .pdo import PDO_QOS
 
 # Bytes of a written value echoed in the confirmation.
 SHOWN_BYTES = 16
@@ -211,6 +215,27 @@ class Client(GatewayClient):
         response = self.call(GetParameters, 'get_parameters', GetParameters.Request(
             names=[name]), self.wait)
         return parameter_value_to_python(response.values[0]) if response.values else None
+
+    def follow(self, message_type, topic: str, qos, handle, count: int = 0) -> None:
+        """Call ``handle(message)`` for messages of ``gateway/topic``; stop after ``count``.
+
+        ``count`` 0 follows until interrupted (Ctrl-C).
+        """
+        received = []
+        subscription = self._cli_node.create_subscription(
+            message_type, f'{self.gateway}/{topic}', received.append, qos)
+        executor = SingleThreadedExecutor(context=self._context)
+        executor.add_node(self._cli_node)
+        handled = 0
+        try:
+            while not count or handled < count:
+                executor.spin_once(timeout_sec=0.1)
+                while received and (not count or handled < count):
+                    handle(received.pop(0))
+                    handled += 1
+        finally:
+            executor.shutdown(timeout_sec=1.0)
+            self._cli_node.destroy_subscription(subscription)
 
 
 def _failed(response) -> int:
@@ -406,6 +431,71 @@ def cmd_nmt(client: Client, args) -> int:
     client.nmt(args.node, args.command)
     target = 'all nodes' if args.node == 0 else f'node {args.node}'
     print(f'ok: sent NMT command {args.command} to {target}')
+    return 0
+
+
+def _pdo_value(entry) -> str:
+    if entry.index in range(1, 8):
+        return 'dummy'
+    value = entry.value
+    return str(int(value)) if math.isfinite(value) and value.is_integer() else repr(value)
+
+
+def describe_pdo(message) -> str:
+    """Return one line for a received PDO: number, COB-ID, bytes, then each entry's value."""
+    entries = ' '.join(f'{entry.name or f"0x{entry.index:04X}:{entry.subindex}"}='
+                       f'{_pdo_value(entry)}' for entry in message.entries)
+    return (f'TPDO {message.pdo} 0x{message.cob_id:03X} [{len(message.data)}] '
+            f'{bytes(message.data).hex(" ").upper()} | {entries}')
+
+
+def cmd_pdo_echo(client: Client, args) -> int:
+    """Print what a device sends (its TPDOs, the gateway's ~/node_<id>/rpdo topic)."""
+    client.follow(Pdo, f'node_{args.node}/rpdo', PDO_QOS,
+                  lambda message: print(describe_pdo(message), flush=True), args.count)
+    return 0
+
+
+def _pdo_entry(client: Client, args, assignment: str) -> PdoEntry:
+    """Return the entry of one NAME_OR_INDEX=VALUE (an index as 0x6040 or 0x6040:0)."""
+    target, equals, text = assignment.rpartition('=')
+    if not equals or not target.strip() or not text.strip():
+        raise UsageError(f'{quoted(assignment)} is not NAME_OR_INDEX=VALUE, e.g. '
+                         f'0x6040=15 or "Controlword=15"')
+    index_text, _, sub_text = target.partition(':')
+    try:
+        index, subindex = parse_integer(index_text), parse_integer(sub_text or '0')
+    except ValueError:
+        args.object = target.strip()
+        found, _ = _named(client, args, [])
+        index, subindex = found.index, found.subindex
+    if not 0 <= index <= 0xFFFF or not 0 <= subindex <= 0xFF:
+        raise UsageError(f'{quoted(target)}: index 0x0000..0xFFFF, sub-index 0..255')
+    try:
+        value = float(parse_integer(text))
+    except ValueError:
+        try:
+            value = float(text)
+        except ValueError:
+            raise UsageError(f'{quoted(assignment)}: {quoted(text)} is not a number') from None
+    return PdoEntry(index=index, subindex=subindex, value=value)
+
+
+def cmd_pdo_write(client: Client, args) -> int:
+    """Send a device's RPDO with the values given (the others keep their last value)."""
+    if bool(args.assignments) == bool(args.data):
+        raise UsageError('give NAME_OR_INDEX=VALUE assignments or --data HEXBYTES, not both '
+                         'nor neither')
+    try:
+        data = encode_value([args.data], 'hex') if args.data else b''
+    except ValueError as error:
+        raise UsageError(f'--data: {error}') from None
+    entries = [_pdo_entry(client, args, assignment) for assignment in args.assignments]
+    response = client.call(PdoWrite, 'pdo_write', PdoWrite.Request(
+        node_id=args.node, pdo=args.pdo, entries=entries, data=list(data)), client.wait)
+    if not response.success:
+        return _failed(response)
+    print(f'ok: RPDO {args.pdo} of node {args.node} sent')
     return 0
 
 
@@ -679,6 +769,35 @@ def build_parser() -> argparse.ArgumentParser:
     mailbox.add_argument('--decimal', action='store_true', help='print words in decimal')
     mailbox.set_defaults(run=cmd_mailbox)
     _add_lss_commands(commands)
+
+    echo = commands.add_parser('pdo-echo', help="print a device's PDOs as they arrive",
+                               description='Print every PDO a device sends (its TPDOs, on '
+                                           "the gateway's ~/node_<id>/rpdo topic), decoded by "
+                                           'its mapping, by EDS names where the gateway has '
+                                           'node_<id>.eds. Ctrl-C ends it.')
+    echo.add_argument('node', type=_ranged('node', 1, MAX_NODE_ID), metavar='NODE',
+                      help='node id 1..127 (one of the gateway parameter pdo.nodes)')
+    echo.add_argument('--count', type=_ranged('count', 0, 1 << 31), default=0, metavar='N',
+                      help='stop after N PDOs (default 0: until Ctrl-C)')
+    echo.set_defaults(run=cmd_pdo_echo)
+
+    pdo_write = commands.add_parser('pdo-write', help="send a device's RPDO",
+                                    description="Send a device's RPDO (its receive PDO). "
+                                                'Mapped objects not given keep the value last '
+                                                'sent (0 at first). Names come from the '
+                                                "node's EDS.")
+    pdo_write.add_argument('node', type=_ranged('node', 1, MAX_NODE_ID), metavar='NODE',
+                           help='node id 1..127 (one of the gateway parameter pdo.nodes)')
+    pdo_write.add_argument('pdo', type=_ranged('pdo', 1, 512), metavar='PDO',
+                           help="the device's RPDO number 1..512")
+    pdo_write.add_argument('assignments', nargs='*', metavar='NAME_OR_INDEX=VALUE',
+                           help='e.g. 0x6040=15, 0x607A:0=-1000 or "Controlword=15"')
+    pdo_write.add_argument('--data', metavar='HEXBYTES',
+                           help='the whole frame instead, as on the bus (e.g. 0F00E8030000)')
+    pdo_write.add_argument('--eds', metavar='FILE',
+                           help="EDS or DCF naming the node's objects (default: the gateway's "
+                                'node_<id>.eds)')
+    pdo_write.set_defaults(run=cmd_pdo_write)
     return parser
 
 

@@ -112,6 +112,24 @@ class NodeParameters:
                       '/diagnostics (diagnostic_msgs/DiagnosticArray)',
                       floating_point_range=[FloatingPointRange(
                           from_value=0.01, to_value=3600.0, step=0.0)])
+        self._declare('pdo.nodes', Parameter.Type.INTEGER_ARRAY,
+                      'Node ids (1..127) whose PDOs the gateway serves: their mapping is read '
+                      'over SDO when first heard and after every boot-up; what they send is '
+                      'published on ~/node_<id>/rpdo, what is published on ~/node_<id>/tpdo '
+                      'is sent to them',
+                      additional_constraints=checks.NODE_IDS)
+        self._declare('pdo.configure', False,
+                      'Write the PDO parameters of node_<id>.eds (0x1400-0x1BFF) to each '
+                      'device of pdo.nodes whenever it boots, then read them back')
+        self._declare('sync.period', 0.0,
+                      'Seconds between SYNC messages the gateway produces (COB-ID 0x80); 0 = '
+                      'no SYNC. Synchronous RPDOs go out right after a SYNC',
+                      floating_point_range=[FloatingPointRange(
+                          from_value=0.0, to_value=60.0, step=0.0)])
+        self._declare('sync.counter_overflow', 0,
+                      'SYNC counter (CiA 301): 0 = SYNC without counter; 2..240 = with a '
+                      'counter from 1 that wraps after this value',
+                      integer_range=[IntegerRange(from_value=0, to_value=240, step=0)])
         self._declare('simulation.devices', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) of simulated CANopen devices to put on the bus, for '
                       'trying the gateway without hardware; empty on a real bus',
@@ -138,13 +156,18 @@ class NodeParameters:
         bus_options = checks.bus_options(self._strings('can.options'))
         expected, guarded = self.node_ids('nodes'), self.node_ids('node_guarding')
         simulated = self.node_ids('simulation.devices')
+        pdo_nodes = self.node_ids('pdo.nodes')
+        checks.check_sync(value('sync.period'), value('sync.counter_overflow'))
         checks.check_file('simulation.eds', value('simulation.eds'))
         self.check_device_files()  # the core does not use them; a bad one stops the node here
         self.warnings = [warning for warning in (
             checks.check_bitrate(interface, value('can.bitrate')),
             checks.check_guarding(guarded, expected, value('node_guarding_period'),
                                   value('heartbeat.timeout')),
-            checks.simulation_warning(interface, channel, simulated)) if warning]
+            checks.simulation_warning(interface, channel, simulated),
+            checks.pdo_configure_warning(value('pdo.configure'), [
+                node_id for node_id in pdo_nodes
+                if not value(device_file_parameter(node_id))])) if warning]
         for warning in self.warnings:
             self._node.get_logger().warning(warning)
         return GatewayConfig(
@@ -162,7 +185,14 @@ class NodeParameters:
             write_protection=WriteProtection(
                 value('read_only'), checks.write_rules(self._strings('sdo.write_allow'))),
             bus_options=bus_options,
-            lss_probe_timeout=value('lss.probe_timeout'))
+            lss_probe_timeout=value('lss.probe_timeout'),
+            pdo_nodes=tuple(pdo_nodes),
+            pdo_configure=value('pdo.configure'),
+            device_files={node_id: value(device_file_parameter(node_id))
+                          for node_id in self._listed_devices()
+                          if value(device_file_parameter(node_id))},
+            sync_period=value('sync.period'),
+            sync_counter_overflow=value('sync.counter_overflow'))
 
     def _strings(self, name: str) -> List[str]:
         return list(self._node.get_parameter_or(name, Parameter(name, value=[])).value or [])
@@ -180,7 +210,7 @@ class NodeParameters:
 
     def _listed_devices(self) -> List[int]:
         listed = set()
-        for name in ('nodes', 'node_guarding'):
+        for name in ('nodes', 'node_guarding', 'pdo.nodes'):
             listed.update(self._node.get_parameter_or(name, Parameter(name, value=[])).value
                           or [])
         return sorted(node_id for node_id in listed if 1 <= node_id <= 127)

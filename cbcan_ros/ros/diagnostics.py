@@ -24,7 +24,9 @@ from ..core.bus import BusStatus
 from ..core.emcy import EmcyStatus, Emergency
 from ..core.gateway import Gateway
 from ..core.nmt import NodeStatus
+from ..core.pdo import PdoStatistics
 from ..core.sdo import SdoStatistics
+from ..core.sync import SyncStatus
 
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                              reliability=ReliabilityPolicy.RELIABLE,
@@ -55,7 +57,12 @@ class Diagnostics:
     - ``<node>: node <id>`` for every device that is expected (parameter ``nodes``), was
       heard, sent an EMCY or was sent an SDO request: ERROR when expected but silent
       (NOT_DETECTED), STALE when a device that is not expected fell silent, WARN while it has
-      an active EMCY (one not cleared by an error reset), else OK.
+      an active EMCY (one not cleared by an error reset) or, for a device of ``pdo.nodes``,
+      while an event-driven TPDO has been silent for twice its event timer, else OK. Its
+      PDOs received and sent per second and the frames shorter than their mapping.
+    - ``<node>: SYNC`` while the gateway produces SYNC: ERROR while it is not on the bus,
+      with the period configured and the one measured between SYNCs heard on the bus (an
+      adapter that does not echo its own frames shows none).
     """
 
     def __init__(self, node: Node, gateway: Gateway):
@@ -68,13 +75,18 @@ class Diagnostics:
         self._bus_id = gateway.bus.description
         self._expected = frozenset(gateway.config.expected_nodes)
         self._previous = (time.monotonic(), gateway.bus_status)
+        self._previous_pdo: Dict[int, PdoStatistics] = {}
 
     def publish(self) -> None:
         """Publish the status of the bus and of every device known."""
         bus = self._gateway.bus_status
         array = DiagnosticArray()
         array.header.stamp = self._node.get_clock().now().to_msg()
-        array.status = [self._bus_status(bus), *self._device_statuses(bus.up)]
+        elapsed = max(time.monotonic() - self._previous[0], 1e-6)
+        array.status = [self._bus_status(bus),
+                        *self._device_statuses(bus.up, elapsed)]
+        if self._gateway.sync.producing:
+            array.status.append(self._sync_status(self._gateway.sync.status()))
         self._publisher.publish(array)
 
     def destroy(self) -> None:
@@ -113,16 +125,65 @@ class Diagnostics:
             'Frames dropped': status.frames_dropped,
         })
 
-    def _device_statuses(self, bus_up: bool) -> List[DiagnosticStatus]:
+    def _sync_status(self, sync: SyncStatus) -> DiagnosticStatus:
+        if sync.running:
+            level, message = OK, f'producing every {sync.period * 1000:g} ms'
+        else:
+            level, message = ERROR, 'not produced now (the CAN bus is down)'
+        measured = sync.measured_period
+        return _status(level, f'{self._prefix}: SYNC', message, self._bus_id, {
+            'Period configured (ms)': f'{sync.period * 1000:g}',
+            'Period measured (ms)':
+                f'{measured * 1000:.3f}' if measured is not None else 'no SYNC heard',
+            'Largest period error (ms)':
+                f'{sync.measured_jitter * 1000:.3f}' if sync.measured_jitter is not None
+                else 'no SYNC heard',
+            'Counter overflow': sync.counter_overflow or 'no counter',
+            'Started': sync.starts,
+            'SYNC frames heard': sync.heard,
+        })
+
+    def _device_statuses(self, bus_up: bool, elapsed: float) -> List[DiagnosticStatus]:
         gateway = self._gateway
         heartbeats = {status.node_id: status for status in gateway.monitor.statuses()}
         emergencies = {status.node_id: status for status in gateway.emcy.statuses()}
         sdo = gateway.sdo_statistics()
-        return [self._device_status(node_id,
-                                    heartbeats.get(node_id) or gateway.monitor.status(node_id),
-                                    emergencies.get(node_id) or EmcyStatus(node_id),
-                                    sdo.get(node_id) or SdoStatistics(), bus_up)
-                for node_id in sorted(set(heartbeats) | set(emergencies) | set(sdo))]
+        pdo = gateway.pdo.statistics()
+        statuses = [self._device_status(node_id,
+                                        heartbeats.get(node_id) or gateway.monitor.status(node_id),
+                                        emergencies.get(node_id) or EmcyStatus(node_id),
+                                        sdo.get(node_id) or SdoStatistics(), bus_up)
+                    for node_id in sorted(set(heartbeats) | set(emergencies) | set(sdo) |
+                                          set(pdo))]
+        for status in statuses:
+            node_id = int(status.name.rpartition(' ')[2])
+            if node_id in pdo:
+                operational = gateway.monitor.status(node_id).state_name == 'OPERATIONAL'
+                self._add_pdo(status, pdo[node_id], self._previous_pdo.get(node_id), elapsed,
+                              operational)
+        self._previous_pdo = pdo
+        return statuses
+
+    @staticmethod
+    def _add_pdo(status: DiagnosticStatus, pdo: PdoStatistics,
+                 before: Optional[PdoStatistics], elapsed: float, operational: bool) -> None:
+        before = before or PdoStatistics()
+        if pdo.late and operational:  # only an operational device sends PDOs
+            status.level = bytes([max(status.level[0], WARN)])
+            status.message += '; ' + ', '.join(
+                f'TPDO {number} silent for {silent:.1f} s (event timer {timer} ms)'
+                for number, timer, silent in pdo.late)
+        status.values += [KeyValue(key=key, value=str(value)) for key, value in {
+            'PDO mapping': pdo.mapping,
+            'TPDOs / RPDOs': f'{pdo.tpdos} / {pdo.rpdos}',
+            'PDOs received/s': f'{(pdo.received - before.received) / elapsed:.1f}',
+            'PDOs sent/s': f'{(pdo.sent - before.sent) / elapsed:.1f}',
+            'PDOs received': pdo.received,
+            'PDOs sent': pdo.sent,
+            'PDO frames too short': pdo.short_frames,
+            'PDO frames of unusable mappings': pdo.unusable,
+            'PDO writes refused': pdo.refused,
+        }.items()]
 
     def _device_status(self, node_id: int, heartbeat: NodeStatus, emcy: EmcyStatus,
                        sdo: SdoStatistics, bus_up: bool) -> DiagnosticStatus:

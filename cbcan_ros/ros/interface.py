@@ -34,6 +34,7 @@ from ..srv import (
     LssScan,
     NmtCommand,
     NmtState,
+    PdoWrite,
     RegisterMailbox,
     SdoBatch,
     SdoRead,
@@ -43,6 +44,7 @@ from .config import NodeParameters
 from .deferred import CallsInProgress, CoroutineRunner, DeferredService
 from .diagnostics import Diagnostics
 from .emcy import EmcyPublisher
+from .pdo import check_request, entry_values, PdoTopics
 from .rclpy_gaps import drain
 
 NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -170,6 +172,7 @@ class GatewayInterface:
                 (SdoRead, 'sdo_read', self._start_read, _fill_result),
                 (SdoWrite, 'sdo_write', self._start_write, _fill_result),
                 (SdoBatch, 'sdo_batch', self._start_batch, _fill_result),
+                (PdoWrite, 'pdo_write', self._start_pdo_write, _fill_result),
                 (RegisterMailbox, 'plc_mailbox', self._start_mailbox, _fill_registers),
                 (LssScan, 'lss_scan', self._start_lss_scan, _fill_lss),
                 (LssConfigure, 'lss_configure', self._start_lss_configure, _fill_lss),
@@ -193,6 +196,8 @@ class GatewayInterface:
                                                name='node states', daemon=True)
         self._states_thread.start()
         self.gateway.monitor.add_listener(self._states_changed.set)
+        self._pdo_topics = PdoTopics(node, self.gateway.pdo, self._on_tpdo_message,
+                                     lambda: self.active)
         self._diagnostics = Diagnostics(node, self.gateway)
         self._timers = [node.create_timer(parameters.value('state_publish_period'),
                                           self._publish_states),
@@ -254,6 +259,7 @@ class GatewayInterface:
             publisher, self._states_publisher = self._states_publisher, None
         node.destroy_publisher(publisher)
         self._emcy.destroy()
+        self._pdo_topics.destroy()
         self._diagnostics.destroy()
         logging.getLogger(PACKAGE).removeHandler(self._log_handler)
 
@@ -276,6 +282,41 @@ class GatewayInterface:
         return self.gateway.sdo_batch(
             [Access(a.node_id, a.index, a.subindex, a.write, bytes(a.data), a.max_size)
              for a in request.accesses], request.timeout)
+
+    def _start_pdo_write(self, request) -> Future:
+        if not self.active:
+            return resolved(SdoResult.aborted(INACTIVE_ABORT, INACTIVE))
+        problem = check_request(request.node_id, request.pdo)
+        if problem:
+            return resolved(SdoResult.failed(problem))
+        return self.gateway.pdo.write(request.node_id, request.pdo,
+                                      entry_values(request.entries), bytes(request.data))
+
+    def _on_tpdo_message(self, node_id: int, message) -> None:
+        """Send what arrived on ~/node_<id>/tpdo; a refusal is logged once and counted."""
+        topic = f'node_{node_id}/tpdo'
+        if not self.active:
+            problem = INACTIVE
+        elif message.node_id not in (0, node_id):
+            problem = f'node_id {message.node_id} is not the node of the topic ({node_id})'
+        else:
+            problem = check_request(node_id, message.pdo)
+        if problem:
+            self.gateway.pdo.refuse(node_id, f'{topic}: {problem}')
+            return
+        try:
+            written = self.gateway.pdo.write(node_id, message.pdo,
+                                             entry_values(message.entries), bytes(message.data))
+        except Exception as error:  # noqa: BLE001 - it would end the node's executor
+            self.gateway.pdo.refuse(node_id, f'{topic}: internal error of the gateway: '
+                                             f'{type(error).__name__}: {error}')
+            return
+        written.add_done_callback(lambda done: self._log_refused(node_id, topic, done))
+
+    def _log_refused(self, node_id: int, topic: str, done: Future) -> None:
+        result = done.result()
+        if not result.success:
+            self.gateway.pdo.log_refusal(node_id, f'{topic}: {result.message}')
 
     def _start_mailbox(self, request) -> Future:
         registers = list(request.registers)

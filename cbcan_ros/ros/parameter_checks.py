@@ -35,6 +35,10 @@ SHOWN_LIMIT = 60
 
 NODE_IDS = 'node ids 1..127'
 
+# The shortest SYNC period: python-can's sending thread (where the kernel does not send it)
+# cannot keep a shorter one.
+MIN_SYNC_PERIOD = 0.001
+
 # CiA 301's bit rates (100 kbit/s is listed there as not recommended for new designs).
 STANDARD_BITRATES = (10_000, 20_000, 50_000, 100_000, 125_000, 250_000, 500_000, 800_000,
                      1_000_000)
@@ -251,6 +255,25 @@ def check_guarding(guarded: List[int], expected: List[int], period: float,
         return (f'parameter node_guarding: {missing} are not in nodes: they appear on '
                 f'~/node_states only once they answer; add them to nodes to see them '
                 f'NOT_DETECTED until then')
+    return None
+
+
+def check_sync(period: float, counter_overflow: int) -> None:
+    """Refuse a SYNC period too short to produce, and a counter CiA 301 does not allow."""
+    if 0 < period < MIN_SYNC_PERIOD:
+        raise ConfigurationError('sync.period', period, 'is too short',
+                                 f'0 (no SYNC) or {MIN_SYNC_PERIOD} to 60 seconds')
+    if counter_overflow == 1:
+        raise ConfigurationError('sync.counter_overflow', counter_overflow,
+                                 'is no counter CiA 301 allows',
+                                 '0 (SYNC without counter) or 2..240')
+
+
+def pdo_configure_warning(configure: bool, without_file: List[int]) -> Optional[str]:
+    """Return a warning when pdo.configure is set for devices that have no file to write."""
+    if configure and without_file:
+        return (f'parameter pdo.configure: nodes {without_file} of pdo.nodes have no '
+                f'node_<id>.eds: their PDO parameters are read, not written')
     return None
 
 

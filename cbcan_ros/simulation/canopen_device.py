@@ -2,8 +2,10 @@
 
 Each device is a canopen ``LocalNode`` built from an EDS file, on a canopen Network of its
 own (so one slow device never stalls another), behaving as a real slave does: it sends a
-boot-up message and heartbeats (0x1017), obeys NMT commands (a reset boots it again), and
-answers node guarding requests while its heartbeat is off.
+boot-up message and heartbeats (0x1017), obeys NMT commands (a reset boots it again),
+answers node guarding requests while its heartbeat is off, and handles the PDOs of its EDS
+while operational: event-driven TPDOs every event timer period with the current values, RPDOs
+written into its objects (canopen's ``PdoMap`` classes, read from the EDS).
 """
 
 import threading
@@ -36,6 +38,9 @@ class SimulatedDevice:
         self.node.add_read_callback(self._on_read)
         self._guard_toggle = 0
         self._nmt_lock = threading.Lock()
+        self._stopped = threading.Event()
+        self._pdo_thread = threading.Thread(target=self._send_tpdos,
+                                            name=f'simulated-{node_id}-tpdos', daemon=True)
 
     @property
     def state(self) -> int:
@@ -48,12 +53,47 @@ class SimulatedDevice:
         self.network.add_node(self.node)
         self.network.subscribe(0, self._on_nmt_command)
         self.network.notifier.add_listener(_RemoteFrameListener(self))
+        self.node.tpdo.read(from_od=True)
+        self.node.rpdo.read(from_od=True)
+        for rpdo in self.node.rpdo.map.values():
+            rpdo.add_callback(self._apply_rpdo)
         self.boot()
+        self._pdo_thread.start()
 
     def stop(self) -> None:
         """Stop heartbeats and leave the bus (the device goes silent)."""
+        self._stopped.set()
         self.node.nmt.stop_heartbeat()
+        if self._pdo_thread.is_alive():
+            self._pdo_thread.join()
         self.network.disconnect()
+
+    def _apply_rpdo(self, rpdo) -> None:
+        if self.state != nmt.OPERATIONAL or len(rpdo.data) < (rpdo.length + 7) // 8:
+            return  # CiA 301: only an operational device takes PDOs; a short one is dropped
+        for variable in rpdo.map:
+            self.node.set_data(variable.index, variable.subindex, variable.get_data())
+
+    def _send_tpdos(self) -> None:
+        timed = [tpdo for tpdo in self.node.tpdo.map.values()
+                 if tpdo.enabled and tpdo.event_timer and tpdo.map]
+        if not timed:
+            return
+        due = {id(tpdo): time.monotonic() for tpdo in timed}
+        while not self._stopped.wait(max(min(due.values()) - time.monotonic(), 0.0)):
+            now = time.monotonic()
+            for tpdo in timed:
+                if due[id(tpdo)] > now:
+                    continue
+                due[id(tpdo)] = now + tpdo.event_timer / 1000
+                if self.state != nmt.OPERATIONAL:
+                    continue
+                for variable in tpdo.map:
+                    variable.set_data(self.node.get_data(variable.index, variable.subindex))
+                try:
+                    tpdo.transmit()
+                except Exception:  # noqa: BLE001, S112 - a full bus: the next period sends
+                    continue
 
     def boot(self, clear: range = range(0x0000, 0x10000)) -> None:
         """Boot as after power-on or reset: values in ``clear`` return to their defaults."""

@@ -24,14 +24,18 @@ durand 0.5.0 needs a few guards, all kept in this module (durand itself is not p
   so everything else is held back until it has one. When LSS gives it an id, durand boots it
   (boot-up, heartbeats, SDO server on the new id), but the SDO guards here stay keyed to
   the old id: they follow the id on every boot.
+- Its TPDOs have no event timer (0x1800+n sub 5): added here, transmitting an event-driven
+  TPDO every event timer period while it is active. Its PDO parameters survive a reset; a
+  device restores its stored ones: :class:`PdoConfig` lists those, applied at every boot.
 """
 
+from dataclasses import dataclass
 import logging
 import sched
 import struct
 import threading
 import time
-from typing import Callable, Dict, Optional, Tuple, Union
+from typing import Callable, Dict, Optional, Sequence, Tuple, Union
 
 import can
 import durand
@@ -66,9 +70,28 @@ IDENTITY = (0x0, 0x51, 0x10000, 0x0)  # 0x1018:1..4 as config/simulated_device.e
 
 ABORT_LENGTH_TOO_HIGH = 0x06070012
 
-# The EDS lists no PDOs, one SDO server and no LSS: durand's defaults (128 SDO servers,
-# 512 PDOs each way) would only slow the device's construction down.
-CAPABILITIES = NodeCapabilities(sdo_servers=1, rpdos=0, tpdos=0)
+# One SDO server, 4 PDOs each way (the predefined connection set) and no LSS: durand's
+# defaults (128 SDO servers, 512 PDOs each way) would only slow the construction down.
+PDOS = 4
+CAPABILITIES = NodeCapabilities(sdo_servers=1, rpdos=PDOS, tpdos=PDOS)
+TPDO_COMMUNICATION = 0x1800
+EVENT_TIMER_SUB = 5
+
+
+@dataclass(frozen=True)
+class PdoConfig:
+    """One PDO's parameters as a device stores them (applied at every boot).
+
+    ``kind`` 'tpdo' (the device sends it) or 'rpdo' (it receives it); ``number`` 1..4;
+    ``mapping`` the mapped objects (index, subindex), each its full size.
+    """
+
+    kind: str
+    number: int
+    mapping: Tuple[Tuple[int, int], ...]
+    transmission_type: int = 255
+    event_timer: int = 0  # ms, TPDOs only
+    enabled: bool = True
 
 # (index, subindex, datatype, access, default, name), as config/simulated_device.eds.
 OBJECTS = (
@@ -291,7 +314,8 @@ class DurandDevice:
     def __init__(self, node_id: int, interface: str = 'virtual', channel: str = 'cbcan',
                  bus_options: Optional[Dict[str, str]] = None, slow_read_delay: float = 0.4,
                  lss: bool = False, identity: Tuple[int, int, int, int] = IDENTITY,
-                 lss_store: bool = True, lss_bit_rates: bool = True):
+                 lss_store: bool = True, lss_bit_rates: bool = True,
+                 pdos: Sequence[PdoConfig] = ()):
         self._node_id = node_id
         self.lss = lss
         self.identity = tuple(identity)
@@ -299,6 +323,8 @@ class DurandDevice:
         self._lss_bit_rates = lss_bit_rates
         self.stored: Dict[str, Optional[int]] = {}
         self._sdo_cob = SDO_RX_BASE + node_id
+        self.pdos = tuple(pdos)
+        self._event_timers: Dict[int, object] = {}
         self.slow_read_delay = slow_read_delay
         self._bus_options = dict(interface=interface, channel=channel, **(bus_options or {}))
         self.node: Optional[durand.Node] = None
@@ -381,6 +407,8 @@ class DurandDevice:
             return
         with self._lock:
             od = self.node.object_dictionary
+            for number in list(self._event_timers):
+                self._set_event_timer(number, 0)
             od.write(HEARTBEAT_INDEX, 0, 0)  # cancels the heartbeat timer
             od.write(EMCY_INHIBIT_INDEX, 0, od.read(EMCY_INHIBIT_INDEX, 0))  # and EMCY's
             network.muted = True
@@ -421,6 +449,48 @@ class DurandDevice:
                 od.write(index, subindex, value)
             except SDODomainAbort as exc:
                 raise ValueError(f'refused with abort code 0x{exc.code:08X}') from exc
+
+    def configure_pdos(self, pdos: Sequence[PdoConfig]) -> None:
+        """Store and apply PDO parameters, as a tool writing and saving them (0x1010) would."""
+        node = self._started()
+        with self._lock:
+            self.pdos = tuple(pdos)
+            self._apply_pdos(node)
+
+    def _apply_pdos(self, node: durand.Node) -> None:
+        for config in self.pdos:
+            pdo = (node.tpdo if config.kind == 'tpdo' else node.rpdo)[config.number - 1]
+            pdo.enable = False
+            pdo.mapping = config.mapping
+            pdo.transmission_type = config.transmission_type
+            if config.kind == 'tpdo':
+                node.object_dictionary.write(TPDO_COMMUNICATION + config.number - 1,
+                                             EVENT_TIMER_SUB, config.event_timer)
+            pdo.enable = config.enabled
+
+    def _add_event_timers(self, od) -> None:
+        for number in range(1, PDOS + 1):
+            index = TPDO_COMMUNICATION + number - 1
+            od.lookup(index)[EVENT_TIMER_SUB] = Variable(DT.UNSIGNED16, 'rw', 0,
+                                                         name='Event timer')
+            od.update_callbacks[(index, EVENT_TIMER_SUB)].add(
+                lambda value, number=number: self._set_event_timer(number, value))
+
+    def _set_event_timer(self, number: int, milliseconds: int) -> None:
+        scheduler = shared_scheduler()
+        timer = self._event_timers.pop(number, None)
+        if timer is not None:
+            scheduler.cancel(timer)
+        if milliseconds:
+            self._event_timers[number] = scheduler.add(
+                milliseconds / 1000, self._event_timer_fired, (number, milliseconds))
+
+    def _event_timer_fired(self, number: int, milliseconds: int) -> None:
+        tpdo = self.node.tpdo[number - 1]
+        if tpdo._cache is not None and tpdo.transmission_type >= 254:  # active, event-driven
+            tpdo.transmit()
+        self._event_timers[number] = shared_scheduler().add(
+            milliseconds / 1000, self._event_timer_fired, (number, milliseconds))
 
     def emergency(self, error_code: int, error_register: Optional[int] = None,
                   manufacturer: bytes = b'') -> None:
@@ -470,6 +540,7 @@ class DurandDevice:
         od.update_callbacks[(SLOW_INDEX, 0)].add(self._store_slow_value)
         od.set_read_callback(SLOW_INDEX, 0, self._read_slow)
         self._slow_value = od.lookup(SLOW_INDEX, 0).value
+        self._add_event_timers(od)
 
     def _boot(self, clear: range, durand_reset: Callable[[], None]) -> None:
         """Boot as after power-on or reset: objects in ``clear`` return to their defaults."""
@@ -483,6 +554,8 @@ class DurandDevice:
                     od.write(index, subindex, _default_of(variable))
         self._drop_sdo_transfers()
         self._guard_toggle = 0
+        if clear.start <= TPDO_COMMUNICATION < clear.stop:
+            self._apply_pdos(self.node)
         durand_reset()  # state 0 with the boot-up message, then pre-operational
         od.write(HEARTBEAT_INDEX, 0, HEARTBEAT_DEFAULT)  # starts heartbeats at the default
 

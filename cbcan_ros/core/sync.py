@@ -1,0 +1,191 @@
+"""SYNC production (CiA 301, COB-ID 0x80): the gateway's clock for synchronous PDOs.
+
+SYNC goes out with python-can's periodic sending (the kernel's broadcast manager on
+SocketCAN, a sending thread elsewhere), so its period does not depend on this process being
+scheduled. With a counter, the task cycles through the frames 1..overflow, which python-can
+sends in turn: the counter needs no code of ours between two SYNCs either.
+
+The task is bound to one opened bus: it is stopped when the bus goes down and started again
+on the new bus when it comes back (the counter starts again at 1, as after a device's reset).
+
+Synchronous RPDOs must reach a device after a SYNC to be applied at the following one; a
+thread of ours sends them a quarter period after the SYNC, on the same monotonic time grid as
+the periodic task (python-can's thread and the kernel's timer both keep a fixed grid from
+their start, without drift).
+"""
+
+from collections import deque
+from dataclasses import dataclass
+import logging
+import statistics
+import threading
+import time
+from typing import Callable, List, Optional
+
+import can
+
+from .bus import BusDown, BusStatus, BusSupervisor
+
+LOGGER = logging.getLogger(__name__)
+
+SYNC_COB_ID = 0x80
+MAX_COUNTER = 240
+# Intervals between SYNCs heard on the bus that the measured period is taken over.
+PERIOD_SAMPLES = 200
+# Synchronous RPDOs leave this fraction of a period after the SYNC: late enough never to
+# overtake it, early enough for the synchronous window of any device.
+RPDO_OFFSET = 0.25
+
+
+def sync_frames(counter_overflow: int) -> List[can.Message]:
+    """Return the frames of one SYNC cycle: one empty frame, or counters 1..overflow."""
+    if not counter_overflow:
+        return [can.Message(arbitration_id=SYNC_COB_ID, data=b'', is_extended_id=False)]
+    return [can.Message(arbitration_id=SYNC_COB_ID, data=bytes([count]), is_extended_id=False)
+            for count in range(1, counter_overflow + 1)]
+
+
+@dataclass(frozen=True)
+class SyncStatus:
+    """What diagnostics show of SYNC."""
+
+    period: float                       # configured, seconds (0: not produced)
+    counter_overflow: int
+    running: bool                       # the periodic task is on the bus now
+    starts: int                         # times it was started (1 + reopens of the bus)
+    heard: int                          # SYNC frames received (an echo of ours, or another's)
+    measured_period: Optional[float]    # mean interval between SYNCs heard, seconds
+    measured_jitter: Optional[float]    # largest deviation of an interval from the period
+
+
+class SyncProducer:
+    """Produces SYNC every ``period`` seconds while the bus is up (``period`` 0: never)."""
+
+    def __init__(self, supervisor: BusSupervisor, network, period: float,
+                 counter_overflow: int = 0):
+        self.period = period
+        self.counter_overflow = counter_overflow
+        self._supervisor = supervisor
+        self._network = network
+        self._lock = threading.Condition()
+        self._task = None
+        self._grid_start = 0.0
+        self._starts = 0
+        self._closing = False
+        self._after_sync: List[Callable[[], None]] = []
+        self._heard = 0
+        self._last_heard: Optional[float] = None
+        self._intervals: deque = deque(maxlen=PERIOD_SAMPLES)
+        self._thread = threading.Thread(target=self._run_after_sync, name='sync-rpdos',
+                                        daemon=True)
+
+    @property
+    def producing(self) -> bool:
+        """Return whether SYNC is configured (it may still be paused while the bus is down)."""
+        return self.period > 0
+
+    def start(self) -> None:
+        """Follow the bus: produce while it is up. Call before the bus is started."""
+        self._network.subscribe(SYNC_COB_ID, self._on_sync_heard)
+        if not self.producing:
+            return
+        self._supervisor.add_listener(self._on_bus_change)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop producing for good; callbacks still waiting for a SYNC are dropped."""
+        with self._lock:
+            self._closing = True
+            waiting = self._stop_task()
+            self._lock.notify_all()
+        _run_all(waiting)
+        self._network.unsubscribe(SYNC_COB_ID, self._on_sync_heard)
+        if self._thread.is_alive():
+            self._thread.join(timeout=1.0)
+
+    def after_next_sync(self, callback: Callable[[], None]) -> bool:
+        """Call ``callback()`` right after the next SYNC; False when no SYNC is coming now."""
+        with self._lock:
+            if self._task is None or self._closing:
+                return False
+            self._after_sync.append(callback)
+            self._lock.notify_all()
+            return True
+
+    def status(self) -> SyncStatus:
+        """Return the SYNC status now."""
+        with self._lock:
+            intervals = list(self._intervals)
+            running = self._task is not None
+            starts, heard = self._starts, self._heard
+        measured = statistics.fmean(intervals) if intervals else None
+        jitter = (max(abs(interval - self.period) for interval in intervals)
+                  if intervals and self.period else None)
+        return SyncStatus(self.period, self.counter_overflow, running, starts, heard,
+                          measured, jitter)
+
+    def _on_bus_change(self, status: BusStatus) -> None:
+        with self._lock:
+            waiting = self._stop_task()
+            started = status.up and not self._closing and self._start_task()
+        _run_all(waiting)
+        if not started:
+            return
+        LOGGER.info('producing SYNC every %g ms%s', self.period * 1000,
+                    f' with a counter to {self.counter_overflow}' if self.counter_overflow
+                    else '')
+
+    def _start_task(self) -> bool:
+        try:
+            self._task = self._supervisor.send_periodic(sync_frames(self.counter_overflow),
+                                                        self.period)
+        except BusDown as error:
+            LOGGER.warning('SYNC could not be started: %s', error)
+            return False
+        self._grid_start = time.monotonic()
+        self._starts += 1
+        return True
+
+    def _stop_task(self) -> List[Callable[[], None]]:
+        """Stop the task; return the callbacks that waited for its SYNC (run them unlocked)."""
+        task, self._task = self._task, None
+        if task is not None:
+            try:
+                task.stop()
+            except Exception as error:  # noqa: BLE001 - a dead adapter may fail to stop it
+                LOGGER.debug('stopping the SYNC task raised %r', error)
+        # Whatever waited for a SYNC of this task is answered by its own caller's checks.
+        waiting, self._after_sync = self._after_sync, []
+        return waiting
+
+    def _run_after_sync(self) -> None:
+        while True:
+            with self._lock:
+                while not self._closing and not (self._after_sync and self._task is not None):
+                    self._lock.wait()
+                if self._closing:
+                    return
+                cycles = (time.monotonic() - self._grid_start) / self.period
+                due = self._grid_start + (int(cycles) + 1 + RPDO_OFFSET) * self.period
+                if cycles % 1 < RPDO_OFFSET:
+                    due -= self.period  # the SYNC of this cycle just went out
+                self._lock.wait(max(due - time.monotonic(), 0.0))
+                if time.monotonic() < due or self._task is None:
+                    continue
+                callbacks, self._after_sync = self._after_sync, []
+            _run_all(callbacks)
+
+    def _on_sync_heard(self, _can_id: int, _data: bytearray, timestamp: float) -> None:
+        with self._lock:
+            self._heard += 1
+            if self._last_heard is not None:
+                self._intervals.append(timestamp - self._last_heard)
+            self._last_heard = timestamp
+
+
+def _run_all(callbacks: List[Callable[[], None]]) -> None:
+    for callback in callbacks:
+        try:
+            callback()
+        except Exception:  # noqa: BLE001 - one failing callback must not stop the others
+            LOGGER.exception('a callback after SYNC failed')

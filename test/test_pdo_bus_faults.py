@@ -1,0 +1,102 @@
+"""PDO writes and SYNC while the adapter is pulled mid-path (test/faulty_bus.py).
+
+Every pdo_write gets exactly one answer, whether the bus goes down before it is sent, while a
+synchronous RPDO waits for its SYNC, or after; SYNC stops while the bus is down and comes back
+with it, and the mapping is read again once the device is heard again.
+"""
+
+import threading
+
+import pytest
+
+from cbcan_ros.msg import PdoEntry
+from cbcan_ros.simulation.durand_device import DurandDevice, PdoConfig
+
+from conftest import new_channel, wait_for_future, wait_until
+import faulty_bus
+from faulty_bus import FaultController
+from node_process import EDS
+
+faulty_bus.register()
+
+NODE = 10
+PROMPT = 5.0
+RECOVERY = 15.0
+PDOS = (PdoConfig('rpdo', 1, ((0x2000, 0), (0x2001, 0)), transmission_type=255),
+        PdoConfig('rpdo', 2, ((0x2002, 0),), transmission_type=1),
+        PdoConfig('tpdo', 1, ((0x2001, 0),), transmission_type=1))
+
+
+@pytest.fixture
+def rig(make_gateway):
+    """Return (gateway, faults, device): a durand device behind the faulty adapter."""
+    channel = new_channel()
+    faults = FaultController.get(channel)
+    device = DurandDevice(NODE, channel=channel, pdos=PDOS)
+    device.start()
+    gateway = make_gateway(can__interface='faulty', can__channel=channel,
+                           simulation__devices=None, nodes=[NODE], pdo__nodes=[NODE],
+                           sync__period=0.05, heartbeat__timeout=0.5, node_10__eds=EDS)
+    wait_until(lambda: gateway.node.gateway.pdo.mappings(NODE)[1], PROMPT, 'the mapping read')
+    yield gateway, faults, device
+    device.stop()
+
+
+def syncs(faults) -> int:
+    return sum(1 for message in faults.sent if message.arbitration_id == 0x80)
+
+
+def test_every_pdo_write_gets_exactly_one_answer_when_the_adapter_is_pulled(rig):
+    gateway, faults, device = rig
+    answers = {}
+    lock = threading.Lock()
+    futures = []
+    for number in range(200):
+        pdo, entry = (1, 0x2000) if number % 2 else (2, 0x2002)
+        future = gateway.call_async('pdo_write', node_id=NODE, pdo=pdo,
+                                    entries=[PdoEntry(index=entry, value=float(number % 200))])
+
+        def count(done, number=number):
+            with lock:
+                answers[number] = answers.get(number, 0) + 1
+        future.add_done_callback(count)
+        futures.append(future)
+        if number == 100:
+            faults.fail_open('adapter gone')
+            faults.fail_receive('adapter unplugged')
+    results = [wait_for_future(future, PROMPT) for future in futures]
+    wait_until(lambda: len(answers) == len(futures), PROMPT, 'every done-callback')
+    assert set(answers.values()) == {1}
+    failed = [result for result in results if not result.success]
+    assert failed, 'the pulled adapter failed no write'
+    for result in failed:
+        assert 'CAN bus is down' in result.message, result.message
+    faults.clear()
+
+
+def test_sync_stops_while_the_bus_is_down_and_resumes_with_it(rig):
+    gateway, faults, device = rig
+    wait_until(lambda: syncs(faults) >= 3, PROMPT, 'SYNC on the bus')
+    faults.fail_open('adapter gone')
+    faults.fail_receive('adapter unplugged')
+    wait_until(lambda: not gateway.node.gateway.bus_status.up, PROMPT, 'the bus down')
+    wait_until(lambda: not gateway.node.gateway.sync.status().running, PROMPT, 'SYNC stopped')
+    before = syncs(faults)
+    answer = gateway.call('pdo_write', node_id=NODE, pdo=2,
+                          entries=[PdoEntry(index=0x2002, value=1.0)])
+    assert not answer.success and 'CAN bus is down' in answer.message, answer.message
+    assert syncs(faults) == before  # nothing is sent on a pulled adapter
+
+    faults.clear()
+    wait_until(lambda: syncs(faults) >= before + 3, RECOVERY, 'SYNC after the bus came back')
+    status = gateway.node.gateway.sync.status()
+    assert status.running and status.starts == 2
+    # The device is heard again, its mapping read again, and synchronous RPDOs work.
+    wait_until(lambda: gateway.call('nmt_command', node_id=NODE, command=1).success,
+               RECOVERY, 'NMT working again')
+
+    def applied():
+        written = gateway.call('pdo_write', node_id=NODE, pdo=2,
+                               entries=[PdoEntry(index=0x2002, value=77.0)])
+        return written.success and device.value(0x2002) == (77).to_bytes(4, 'little')
+    wait_until(applied, RECOVERY, 'a synchronous RPDO applied after the bus came back')
