@@ -344,7 +344,8 @@ class Deadlines:
             while self._running:
                 now = time.monotonic()
                 if self._heap and self._heap[0][0] <= now:
-                    expire = heapq.heappop(self._heap)[2]
+                    entry = heapq.heappop(self._heap)
+                    expire, entry[2] = entry[2], None  # fired: a later cancel finds it done
                     if expire is None:
                         self._cancelled -= 1
                         continue
