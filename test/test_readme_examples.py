@@ -76,6 +76,12 @@ NOT_RUN = {
                                                    'test_lss_process runs these steps',
     'cbcan_cli lss-inquire 0x319': 'a device with LSS at that identity: test_lss_process runs '
                                    'these steps',
+    'node_5: {eds: /robot/eds/drive.eds}': 'a CiA 402 drive and its EDS (test_pdo_topics runs '
+                                           'the same PDO and SYNC flow against durand)',
+    'cbcan_cli pdo-write 5 1 Controlword=15': 'a CiA 402 drive as node 5 (test_pdo_cli runs '
+                                              'pdo-echo and pdo-write against durand)',
+    'def on_drive(message):': 'a fragment for a node of your own talking to a CiA 402 drive '
+                              '(test_pdo_process subscribes and publishes the same way)',
     'LssScan request:': 'a summary of srv_defs/srv/LssScan.srv, LssConfigure.srv and '
                         'LssInquire.srv',
 }
