@@ -135,7 +135,7 @@ def test_overload_is_answered_busy_at_once_while_other_devices_and_states_go_on(
     silent = SILENT[0]
     # The waiting calls' timeout: what follows takes a fraction of a second on a quiet
     # machine and must all happen while they still wait.
-    timeout = 10.0
+    timeout = 6.0
     calls = [read.call_async(SdoRead.Request(node_id=silent, index=0x1000, timeout=timeout))
              for _ in range(300)]
     # One request on the bus and sdo.queue_limit behind it wait; the rest are busy at once

@@ -216,6 +216,9 @@ def outcomes(request) -> Dict[str, Outcome]:
         return {id_: future.result() for id_, future in futures.items()}
 
 
+# Every worker collects every test, so `outcomes` runs all of these cases wherever it runs:
+# one pytest-xdist worker gets them all, or each would start all the processes.
+@pytest.mark.xdist_group('installed_node_with_bad_values')
 @pytest.mark.parametrize('bad', PROCESS_CASES, ids=[bad.id for bad in PROCESS_CASES])
 def test_a_bad_value_stops_the_installed_node(bad, outcomes):
     outcome = outcomes[bad.id]

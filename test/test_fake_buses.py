@@ -78,7 +78,9 @@ def test_slcan_driver_exchanges_frames_with_a_virtual_peer(adapter):
         assert (first.arbitration_id, first.is_extended_id, bytes(first.data)) == (
             0x1ABCDEF0, True, b'\x01\x02')
         assert (second.arbitration_id, second.is_remote_frame, second.dlc) == (0x705, True, 1)
-        assert (adapter.frames_to_bus, adapter.frames_to_driver) == (1, 2)
+        # The adapter counts a line once written, which the driver may read first.
+        wait_until(lambda: (adapter.frames_to_bus, adapter.frames_to_driver) == (1, 2), 10.0,
+                   f'the counts (1, 2) (now {adapter.frames_to_bus, adapter.frames_to_driver})')
     finally:
         peer.shutdown()
         driver.shutdown()

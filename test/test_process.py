@@ -107,18 +107,18 @@ def test_installed_node_serves_sdo_nmt_and_the_cli_over_udp_multicast(
     assert (response.success, response.state_name) == (True, 'OPERATIONAL')
     assert simulated[5].state == NmtState.Response.OPERATIONAL
 
-    cli = subprocess.run([executable('cbcan_cli'), '--gateway', gateway_name, '--wait', '15',
-                          'sdo-read', '5', '0x1000'],
-                         capture_output=True, text=True, timeout=30)
+    cli = subprocess.run([executable('cbcan_cli'), '--gateway', gateway_name,
+                          '--wait', str(START_TIMEOUT), 'sdo-read', '5', '0x1000'],
+                         capture_output=True, text=True, timeout=START_TIMEOUT + 30)
     assert cli.returncode == 0, cli.stdout + cli.stderr
     assert '92 01 02 00' in cli.stdout and '0x00020192' in cli.stdout, cli.stdout
 
     accesses = tmp_path / 'accesses.txt'
     accesses.write_text('# a comment, then a read of what the arguments wrote\nr:5:0x2001\n')
-    cli = subprocess.run([executable('cbcan_cli'), '--gateway', gateway_name, '--wait', '15',
-                          'sdo-batch', 'r:5:0x1000', 'w:5:0x2001:0:3412', 'r:5:0x6000',
-                          '--file', str(accesses)],
-                         capture_output=True, text=True, timeout=30)
+    cli = subprocess.run([executable('cbcan_cli'), '--gateway', gateway_name,
+                          '--wait', str(START_TIMEOUT), 'sdo-batch', 'r:5:0x1000',
+                          'w:5:0x2001:0:3412', 'r:5:0x6000', '--file', str(accesses)],
+                         capture_output=True, text=True, timeout=START_TIMEOUT + 30)
     assert cli.returncode == 1, cli.stdout + cli.stderr  # one access failed
     lines = cli.stdout.splitlines()
     assert lines[0].endswith('read  node 5 0x1000:00  ok  92 01 02 00'), lines

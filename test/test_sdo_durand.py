@@ -155,6 +155,9 @@ def frames_until_marker(gateway, bus: can.BusABC, node_id: int, timeout: float =
 
     The transfers of one node run one at a time, so everything an earlier call sent to the
     node (a repeat or a late frame included) is on the bus before the marker's first frame.
+    python-can's virtual bus hands a frame to its receivers one after another, so under load
+    a frame can reach this bus after one its sender's peer sent in answer to it: the frames
+    are put in the order their sends began (the virtual bus stamps each frame then).
     """
     gateway.call('sdo_write', node_id=node_id, index=0x2000, subindex=0, data=[0x12],
                  timeout=0.3)
@@ -168,16 +171,15 @@ def frames_until_marker(gateway, bus: can.BusABC, node_id: int, timeout: float =
         data = bytes(message.data)
         if message.arbitration_id == rx and data[1:4] == MARKER_MUX and data[0] in (
                 0x2F, 0xC2, 0xC6):
-            # python-can's virtual bus hands a frame to its receivers one after another, so
-            # under load a device frame can reach this bus after the gateway's next request
-            # although the gateway had it before: take the device's late aborts too.
+            # For the same reason a device frame can reach this bus after the gateway's next
+            # request although the gateway had it before: take the device's late aborts too.
             while (late := bus.recv(0.1)) is not None:
                 late_data = bytes(late.data)
                 if late.arbitration_id == tx and late_data[0] == ABORT and \
                         late_data[1:4] != MARKER_MUX:
-                    frames.append((tx, late_data))
-            return frames
-        frames.append((message.arbitration_id, data))
+                    frames.append((late.timestamp, tx, late_data))
+            return [(cob_id, data) for _, cob_id, data in sorted(frames, key=lambda f: f[0])]
+        frames.append((message.timestamp, message.arbitration_id, data))
     raise AssertionError('the marker request was not seen on the bus')
 
 

@@ -119,8 +119,10 @@ def test_signal_answers_every_waiting_call_and_sends_no_request(
     sent = [(t, m) for t, m in recorder.frames if m.arbitration_id == requests]
     after = [m for t, m in sent if t > signalled]
     assert all(m.data[0] == 0x80 for m in after), [m.data.hex() for m in after]
-    assert [m.data[0] for _, m in sent].count(0x40) == 1, 'only the first request went out'
-    assert not any(m.data[0] & 0xE0 == 0x20 for _, m in sent), 'no write went out'
+    # The read or the write the node took first (the two services race) went out; the
+    # calls queued behind it never did.
+    initiates = [m.data.hex() for _, m in sent if m.data[0] == 0x40 or m.data[0] & 0xE0 == 0x20]
+    assert len(initiates) == 1, f'only the first request went out: {initiates}'
 
 
 def mailbox_backlog(start_node, client_node):
@@ -268,7 +270,11 @@ def test_signal_during_a_burst_answers_every_caller_and_sends_no_write_twice(
                     SdoAccess(node_id=node_id, index=0x2003, write=True,
                               data=list(number.to_bytes(4, 'little')))],
                     timeout=CALL_TIMEOUT)))
-        wait_until(lambda: any(call.done() for call in calls), DELIVERY, 'the first answer')
+        # Calls for a device beyond sdo.queue_limit are answered "busy" as they are taken: a
+        # third answered means the node took about two thirds, and the rest have reached it
+        # (a request still on its way when the services go reaches nobody) and wait there.
+        wait_until(lambda: len(calls) - unanswered(calls) >= len(calls) // 3, DELIVERY,
+                   'a third of the calls answered')
         signalled = stop_with(gateway, signal.SIGINT)
         answered_within(calls, DELIVERY, 'after SIGINT in the middle of a burst', gateway)
         time.sleep(0.2)  # let frames still in flight reach the recorder
