@@ -75,7 +75,8 @@ def test_burst_of_waiting_calls_is_answered_within_its_timeout(start_node, clien
 
 
 # A client in a process of its own: one answered call, so its response reader is matched to
-# the node's response writer, then it waits to be killed.
+# the node's response writer, then argv[2] calls to silent nodes left in flight, then it
+# waits to be killed.
 CLIENT = """
 import sys
 import rclpy
@@ -88,8 +89,26 @@ assert client.wait_for_service(timeout_sec=60.0)
 future = client.call_async(SdoRead.Request(node_id=0, index=0x1000))
 rclpy.spin_until_future_complete(node, future, timeout_sec=30.0)
 print('answered' if future.done() else 'no answer', flush=True)
+calls = [client.call_async(SdoRead.Request(node_id=10 + n % 20, index=0x1000, timeout=1.0))
+         for n in range(int(sys.argv[2]))]
+print('sent', flush=True)
 sys.stdin.read()
 """
+
+
+def kill_a_client(service: str, in_flight: int = 0) -> None:
+    """Run CLIENT against ``service`` with ``in_flight`` calls left open, then kill -9 it."""
+    doomed = subprocess.Popen([sys.executable, '-c', CLIENT, service, str(in_flight)],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert doomed.stdout.readline().strip() == 'answered'
+        assert doomed.stdout.readline().strip() == 'sent'
+    finally:
+        doomed.kill()
+        doomed.wait(START_TIMEOUT)
+        doomed.stdin.close()
+        doomed.stdout.close()
+
 
 # More answers than the response writer of a KEEP_ALL service keeps unacknowledged (Fast DDS:
 # resource_limits.max_samples 5000), sent in bursts that each must be answered long before
@@ -107,15 +126,7 @@ def test_a_killed_client_does_not_mute_the_service_for_the_others(start_node, cl
     name = f'{namespace()}/cbcan'
     gateway = start_node(arguments(name, '-p', f'can.channel:={new_channel()}'))
     sdo_read = service_client(client_node, SdoRead, f'{name}/sdo_read', gateway)
-    doomed = subprocess.Popen([sys.executable, '-c', CLIENT, f'{name}/sdo_read'],
-                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    try:
-        assert doomed.stdout.readline().strip() == 'answered'
-    finally:
-        doomed.kill()
-        doomed.wait(START_TIMEOUT)
-        doomed.stdin.close()
-        doomed.stdout.close()
+    kill_a_client(f'{name}/sdo_read')
 
     request = SdoRead.Request(node_id=0, index=0x1018, subindex=2)
     for burst in range(BURSTS):
@@ -192,38 +203,12 @@ def test_many_concurrent_mailbox_chains_read_the_right_values(start_node, client
 
 # A client process killed with kill -9 in the middle of its burst.
 
-KILLED_CLIENT = """
-import sys
-import rclpy
-from cbcan_ros.ros.interface import SERVICE_QOS
-from cbcan_ros.srv import SdoRead
-rclpy.init()
-node = rclpy.create_node('doomed_client')
-client = node.create_client(SdoRead, sys.argv[1], qos_profile=SERVICE_QOS)
-assert client.wait_for_service(timeout_sec=60.0)
-first = client.call_async(SdoRead.Request(node_id=0, index=0x1000))
-rclpy.spin_until_future_complete(node, first, timeout_sec=30.0)
-calls = [client.call_async(SdoRead.Request(node_id=10 + n % 20, index=0x1000, timeout=1.0))
-         for n in range(1500)]
-print('sent', flush=True)
-sys.stdin.read()
-"""
-
-
 def test_a_client_killed_mid_burst_leaves_the_others_served(start_node, client_node):
     name = f'{namespace()}/cbcan'
     gateway = start_node(arguments(name, '-p', f'can.channel:={new_channel()}',
                                    '-p', f'simulation.devices:={list(LIVE)}'))
     read = service_client(client_node, SdoRead, f'{name}/sdo_read', gateway)
-    doomed = subprocess.Popen([sys.executable, '-c', KILLED_CLIENT, f'{name}/sdo_read'],
-                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    try:
-        assert doomed.stdout.readline().strip() == 'sent'
-    finally:
-        doomed.kill()
-        doomed.wait(START_TIMEOUT)
-        doomed.stdin.close()
-        doomed.stdout.close()
+    kill_a_client(f'{name}/sdo_read', in_flight=1500)
     # Its 1,500 calls end (busy or timeout) and are answered to nobody; ours go on, also
     # after its calls' answers have all been sent into the void.
     for round_ in range(3):

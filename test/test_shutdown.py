@@ -180,31 +180,42 @@ def test_a_second_signal_during_shutdown_ends_the_node_at_once(start_node, clien
     assert 'Traceback' not in output, output[-3000:]
 
 
-def test_signal_during_block_download_aborts_it_on_the_bus(
-        start_node, client_node, durand_device):
-    # Once a defect: the cancel landed while canopen sent sub-block segments, send_request
-    # raised without sending the abort, and the device was left inside the block transfer.
+def signal_midway(start_node, client_node, durand_device, srv_type, service: str, request,
+                  under_way: int, *parameters: str):
+    """SIGINT a node once ``under_way`` of its requests to durand device 2 are on the bus.
+
+    The node runs on a udp_multicast bus of its own with the device and a recorder; the
+    call is ``request`` to ``service``. Return (its answer, the recorder's frames).
+    """
     group, port = private_bus()
     durand_device('udp_multicast', group, port=port)
     recorder = BusRecorder(group, port)
     name = f'{namespace()}/cbcan'
     try:
         gateway = start_node(arguments(name, '-p', 'can.interface:=udp_multicast',
-                                       '-p', f'can.channel:={group}',
-                                       '-p', 'sdo.block_transfer:=true'), port)
-        sdo_write = service_client(client_node, SdoWrite, f'{name}/sdo_write', gateway)
-        call = sdo_write.call_async(SdoWrite.Request(node_id=2, index=DOMAIN, data=BIG,
-                                                     timeout=CALL_TIMEOUT))
+                                       '-p', f'can.channel:={group}', *parameters), port)
+        client = service_client(client_node, srv_type, f'{name}/{service}', gateway)
+        call = client.call_async(request)
         wait_until(lambda: sum(m.arbitration_id == REQUESTS for _, m in recorder.frames)
-                   > 150, DELIVERY, 'the block download under way')
+                   > under_way, DELIVERY, f'the {service} under way')
         stop_with(gateway, signal.SIGINT)
         answer = wait_for_future(call, DELIVERY)
         time.sleep(0.2)  # let frames still in flight reach the recorder
     finally:
         recorder.close()
+    return answer, recorder.frames
+
+
+def test_signal_during_block_download_aborts_it_on_the_bus(
+        start_node, client_node, durand_device):
+    # Once a defect: the cancel landed while canopen sent sub-block segments, send_request
+    # raised without sending the abort, and the device was left inside the block transfer.
+    answer, frames = signal_midway(
+        start_node, client_node, durand_device, SdoWrite, 'sdo_write',
+        SdoWrite.Request(node_id=2, index=DOMAIN, data=BIG, timeout=CALL_TIMEOUT), 150,
+        '-p', 'sdo.block_transfer:=true')
     assert not answer.success and 'shutting down' in answer.message, answer.message
-    aborts = [m for _, m in recorder.frames
-              if m.arbitration_id == REQUESTS and m.data[0] == ABORT]
+    aborts = [m for _, m in frames if m.arbitration_id == REQUESTS and m.data[0] == ABORT]
     assert [mux(m) for m in aborts] == [(DOMAIN, 0)], [m.data.hex() for m in aborts]
 
 
@@ -212,27 +223,15 @@ def test_signal_during_a_batch_sends_nothing_for_accesses_that_never_started(
         start_node, client_node, durand_device):
     # Once a defect: the batch's next access, refused by the shutdown send gate, was then
     # aborted on the bus although the device never heard of it.
-    group, port = private_bus()
-    durand_device('udp_multicast', group, port=port)
-    recorder = BusRecorder(group, port)
-    name = f'{namespace()}/cbcan'
-    try:
-        gateway = start_node(arguments(name, '-p', 'can.interface:=udp_multicast',
-                                       '-p', f'can.channel:={group}'), port)
-        sdo_batch = service_client(client_node, SdoBatch, f'{name}/sdo_batch', gateway)
-        call = sdo_batch.call_async(SdoBatch.Request(accesses=[
+    answer, frames = signal_midway(
+        start_node, client_node, durand_device, SdoBatch, 'sdo_batch',
+        SdoBatch.Request(accesses=[
             SdoAccess(node_id=2, index=DOMAIN, subindex=0),
             SdoAccess(node_id=2, index=0x2002, subindex=0, write=True, data=[1, 2, 3, 4]),
-        ], timeout=CALL_TIMEOUT))
-        wait_until(lambda: sum(m.arbitration_id == REQUESTS for _, m in recorder.frames)
-                   > 100, DELIVERY, 'the segmented upload under way')
-        stop_with(gateway, signal.SIGINT)
-        results = wait_for_future(call, DELIVERY).results
-        time.sleep(0.2)
-    finally:
-        recorder.close()
-    assert all('shutting down' in r.message for r in results), [r.message for r in results]
-    stray = [m.data.hex() for _, m in recorder.frames
+        ], timeout=CALL_TIMEOUT), 100)
+    messages = [r.message for r in answer.results]
+    assert all('shutting down' in message for message in messages), messages
+    stray = [m.data.hex() for _, m in frames
              if m.arbitration_id == REQUESTS and mux(m) == (0x2002, 0)]
     assert stray == [], f'frames for the write that never started: {stray}'
 
