@@ -100,7 +100,7 @@ def wait_for_future(future, timeout: float):
     return future.result()
 
 
-def frames_before_marker(gateway, bus: can.BusABC, timeout: float = 5.0):
+def frames_before_marker(gateway, bus: can.BusABC, timeout: float = 60.0):
     """Return the SDO request frames the gateway sent before a marker read of node 3.
 
     Frames arrive in order, so whatever an earlier call sent (a repeat included) is on the
@@ -155,7 +155,7 @@ class Harness:
             self._clients[service] = client
         return self._clients[service]
 
-    def call(self, service: str, wait: float = 10.0, **fields):
+    def call(self, service: str, wait: float = 30.0, **fields):
         """Call a gateway service with the request ``fields`` and return the response."""
         request = SERVICE_TYPES[service].Request(**fields)
         return wait_for_future(self.client(service).call_async(request), wait)
