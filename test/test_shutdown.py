@@ -70,8 +70,10 @@ def answered_within(calls, timeout: float, what: str, gateway) -> None:
     try:
         wait_until(lambda: not unanswered(calls), timeout, what)
     except AssertionError:
-        raise AssertionError(f'{unanswered(calls)} of {len(calls)} calls never answered '
-                             f'({what}); node output:\n{gateway.output()[-4000:]}') from None
+        missing = [n for n, call in enumerate(calls) if not call.done()]
+        raise AssertionError(f'{len(missing)} of {len(calls)} calls never answered ({what}): '
+                             f'numbers {missing[:20]}; node output:\n'
+                             f'{gateway.output()[-4000:]}') from None
 
 
 def stop_with(gateway, signum) -> float:
