@@ -1,16 +1,45 @@
 """Shared test harness: the gateway node in-process on a private virtual bus, with rclpy clients.
 
-Every gateway gets its own python-can ``virtual`` channel and the whole session its own
-ROS_DOMAIN_ID (set before rclpy starts), so parallel runs never hear each other.
+Every gateway gets its own python-can ``virtual`` channel, and every test process its own
+ROS_DOMAIN_ID (set before rclpy starts, held with a lock for the life of the process), so
+parallel workers and parallel runs of the suite never hear each other.
 """
 
+import fcntl
 import os
-import random
+import pathlib
+import tempfile
 import threading
 import time
 import uuid
 
-os.environ['ROS_DOMAIN_ID'] = str(random.randint(1, 100))
+# ROS domain ids a test process may take. 0 is every ROS system's default; up to 101 the
+# DDS ports of a domain stay below Linux's ephemeral port range (ROS 2's "domain ID" page).
+DOMAIN_IDS = range(1, 102)
+DOMAIN_LOCKS = pathlib.Path(tempfile.gettempdir()) / 'cbcan_ros-test-domains'
+
+
+def claim_domain_id() -> int:
+    """Return the first ROS domain id no other running test process holds, and hold it.
+
+    The lock (flock on one file per id) lasts as long as this process and ends with it,
+    however it ends; a random id would let two workers or two clones meet by chance.
+    """
+    DOMAIN_LOCKS.mkdir(mode=0o1777, exist_ok=True)
+    for domain in DOMAIN_IDS:
+        lock = os.open(DOMAIN_LOCKS / f'{domain}.lock', os.O_RDONLY | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(lock)
+            continue
+        return domain  # the descriptor stays open (and is not inherited by children)
+    raise RuntimeError(f'every ROS domain id {DOMAIN_IDS.start}..{DOMAIN_IDS.stop - 1} is held '
+                       f'by another test process (locks in {DOMAIN_LOCKS})')
+
+
+DOMAIN_ID = claim_domain_id()
+os.environ['ROS_DOMAIN_ID'] = str(DOMAIN_ID)
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 import can  # noqa: E402
@@ -85,7 +114,7 @@ def wait_for_future(future, timeout: float):
     return future.result()
 
 
-def frames_before_marker(gateway, bus: can.BusABC, timeout: float = 5.0):
+def frames_before_marker(gateway, bus: can.BusABC, timeout: float = 60.0):
     """Return the SDO request frames the gateway sent before a marker read of node 3.
 
     Frames arrive in order, so whatever an earlier call sent (a repeat included) is on the
@@ -140,7 +169,7 @@ class Harness:
             self._clients[service] = client
         return self._clients[service]
 
-    def call(self, service: str, wait: float = 10.0, **fields):
+    def call(self, service: str, wait: float = 30.0, **fields):
         """Call a gateway service with the request ``fields`` and return the response."""
         request = SERVICE_TYPES[service].Request(**fields)
         return wait_for_future(self.client(service).call_async(request), wait)
@@ -164,7 +193,7 @@ class Harness:
                 return None
             return {n.node_id: n.state_name for n in self.states[-1].nodes}
 
-    def wait_for_states(self, expected: dict, timeout: float = 5.0):
+    def wait_for_states(self, expected: dict, timeout: float = 10.0):
         """Wait until the topic shows every node in ``expected`` ({id: state_name})."""
         def matches():
             latest = self.latest_states()
@@ -229,6 +258,27 @@ def make_gateway():
 def gateway(make_gateway):
     """Start a gateway node with simulated devices 2, 3 and 5 on a private virtual bus."""
     return make_gateway()
+
+
+@pytest.fixture
+def durand_device():
+    """Return a factory ``durand_device(interface, channel, **options)`` for a device 2.
+
+    The device (the independent durand stack) holds 64 KiB in its DOMAIN 0x2020.
+    """
+    from cbcan_ros.simulation.durand_device import DurandDevice
+    started = []
+
+    def factory(interface: str, channel: str, **options):
+        device = DurandDevice(2, interface, channel, bus_options=options or None)
+        device.start()
+        device.set_value(0x2020, 0, bytes(range(256)) * 256)
+        started.append(device)
+        return device
+
+    yield factory
+    for device in started:
+        device.stop()
 
 
 @pytest.fixture

@@ -8,7 +8,6 @@ gateway's adapter only, as a pulled cable or a dead USB adapter does on a robot.
 import logging
 import pathlib
 import struct
-import time
 
 import pytest
 
@@ -23,8 +22,13 @@ from faulty_bus import FaultController
 EDS = str(pathlib.Path(__file__).resolve().parent.parent / 'config' / 'simulated_device.eds')
 DEVICE_TYPE = struct.pack('<I', 0x00020192)
 BUS_LOGGER = 'cbcan_ros.core.bus'
-RECOVERY = 10.0  # backoff doubles up to 5 s; generous for a loaded CI machine
-PROMPT = 1.0     # "at once", with room for a loaded CI machine
+RECOVERY = 20.0  # backoff doubles up to 5 s; generous for a loaded CI machine
+# "At once" is proven against the behaviour, not a stopwatch: the calls' timeout (LONG) and
+# the slow device's delay (SLOW) are far longer than PROMPT, the ceiling for an answer that
+# a quiet machine gives in milliseconds, so an answer within PROMPT is neither.
+PROMPT = 5.0
+SLOW = 6.0
+LONG = 30.0
 # Fatek CBCAN words (docs/plc_mailbox_formats.md): the flag, SDO read, result 4 = failed, and
 # the abort words (low, high) of 0x08000000, the code of a bus that went down
 MAILBOX_FLAG, MAILBOX_READ, MAILBOX_RESULT_FAILED = 0xCA0E, 5055, 4
@@ -84,10 +88,8 @@ def test_receive_error_is_reported_once_and_the_bus_comes_back(start_faulty, cap
     faults.fail_open('adapter gone')  # keep it down while we look
     assert faults.fail_receive('adapter unplugged') == 1
 
-    gateway.wait_for_states({2: 'NOT_DETECTED', 3: 'NOT_DETECTED'}, PROMPT + 0.5)
-    started = time.monotonic()
-    answer = read_device_type(gateway)
-    assert time.monotonic() - started < PROMPT
+    gateway.wait_for_states({2: 'NOT_DETECTED', 3: 'NOT_DETECTED'}, PROMPT)
+    answer = read_device_type(gateway, wait=PROMPT, timeout=LONG)
     assert not answer.success
     assert 'CAN bus is down' in answer.message, answer.message
     status = gateway.node.gateway.bus_status
@@ -106,17 +108,15 @@ def test_receive_error_is_reported_once_and_the_bus_comes_back(start_faulty, cap
 
 def test_pending_and_queued_calls_are_answered_at_once_when_the_bus_goes_down(start_faulty):
     gateway, faults = start_faulty()
-    gateway.devices[2].slow_read_delay = 3.0
-    slow = gateway.call_async('sdo_read', node_id=2, index=0x2200, subindex=0, timeout=8.0)
-    queued = [gateway.call_async('sdo_read', node_id=2, index=0x1000, subindex=0, timeout=8.0)
+    gateway.devices[2].slow_read_delay = SLOW
+    slow = gateway.call_async('sdo_read', node_id=2, index=0x2200, subindex=0, timeout=LONG)
+    queued = [gateway.call_async('sdo_read', node_id=2, index=0x1000, subindex=0, timeout=LONG)
               for _ in range(5)]
     wait_until(lambda: any(m.arbitration_id == 0x602 for m in faults.sent), PROMPT,
                'the slow request on the bus')
     faults.fail_open('adapter gone')
     faults.fail_receive('adapter unplugged')
-    started = time.monotonic()
-    answers = [wait_for_future(future, PROMPT + 1.0) for future in [slow, *queued]]
-    assert time.monotonic() - started < PROMPT
+    answers = [wait_for_future(future, PROMPT) for future in [slow, *queued]]
     for response in answers:
         assert not response.success
         assert 'CAN bus is down' in response.message, response.message
@@ -127,8 +127,8 @@ def test_pending_and_queued_calls_are_answered_at_once_when_the_bus_goes_down(st
 def test_mailbox_calls_waiting_when_the_bus_goes_down_are_answered_at_once(start_faulty):
     # The PLC mailbox runs on its own event loop: a block waiting on the bus, and blocks
     # queued behind it, get their failed answer when the bus goes, as SDO calls do.
-    gateway, faults = start_faulty()
-    gateway.devices[2].slow_read_delay = 3.0
+    gateway, faults = start_faulty(sdo__timeout=LONG)
+    gateway.devices[2].slow_read_delay = SLOW
     block = [MAILBOX_FLAG, MAILBOX_READ, 2, 0x2200, 0, 4] + [0] * 64
     calls = [gateway.call_async('plc_mailbox', format='cbcan', registers=block)
              for _ in range(4)]
@@ -136,9 +136,7 @@ def test_mailbox_calls_waiting_when_the_bus_goes_down_are_answered_at_once(start
                'the slow request on the bus')
     faults.fail_open('adapter gone')
     faults.fail_receive('adapter unplugged')
-    started = time.monotonic()
-    answers = [wait_for_future(future, PROMPT + 1.0) for future in calls]
-    assert time.monotonic() - started < PROMPT
+    answers = [wait_for_future(future, PROMPT) for future in calls]
     for answer in answers:
         assert [answer.registers[0], *answer.registers[6:8]] == \
             [MAILBOX_RESULT_FAILED, *MAILBOX_BUS_DOWN], list(answer.registers[:8])
@@ -156,7 +154,7 @@ def test_send_failure_takes_the_bus_down_and_it_recovers(start_faulty):
     assert 'transmit buffer overflow' in answer.message, answer.message
     nmt = gateway.call('nmt_command', node_id=2, command=1)
     assert not nmt.success and 'CAN bus is down' in nmt.message, nmt.message
-    gateway.wait_for_states({2: 'NOT_DETECTED'}, PROMPT + 0.5)
+    gateway.wait_for_states({2: 'NOT_DETECTED'}, PROMPT)
     faults.clear()
     wait_for_recovery(gateway)
     assert gateway.call('nmt_command', node_id=2, command=1).success
@@ -192,7 +190,7 @@ def test_node_guarding_survives_send_errors_and_resumes(start_faulty):
     gateway.wait_for_states({3: 'OPERATIONAL'})
     faults.fail_open('adapter gone')
     faults.fail_send('transmit failed')
-    gateway.wait_for_states({3: 'NOT_DETECTED'}, PROMPT + 0.5)
+    gateway.wait_for_states({3: 'NOT_DETECTED'}, PROMPT)
     faults.clear()
     # No heartbeat from node 3: only the guarding replies can bring it back.
     gateway.wait_for_states({3: 'OPERATIONAL'}, RECOVERY)

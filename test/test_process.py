@@ -4,9 +4,13 @@ The simulated devices run in this test process on the same udp_multicast channel
 SDO, NMT and heartbeat frame crosses a process boundary, and so does every service call.
 """
 
+import os
 import subprocess
+import time
 import uuid
 
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
 import pytest
 
 from cbcan_ros.msg import NodeStates
@@ -14,8 +18,17 @@ from cbcan_ros.ros.interface import NODE_STATES_QOS
 from cbcan_ros.simulation.canopen_device import SimulatedDevice
 from cbcan_ros.srv import NmtCommand, NmtState, SdoRead, SdoWrite
 
-from conftest import wait_until
-from node_process import call, EDS, executable, random_bus, service_client, START_TIMEOUT
+from conftest import new_channel, wait_for_future, wait_until
+from node_process import (
+    arguments,
+    call,
+    EDS,
+    executable,
+    namespace,
+    private_bus,
+    service_client,
+    START_TIMEOUT,
+)
 
 DEVICES = (2, 5)
 
@@ -40,7 +53,7 @@ def devices():
 
 def test_installed_node_serves_sdo_nmt_and_the_cli_over_udp_multicast(
         start_node, client_node, devices, tmp_path):
-    group, port = random_bus()
+    group, port = private_bus()
     namespace = f'/proc{uuid.uuid4().hex[:8]}'
     gateway_name = f'{namespace}/cbcan'
     simulated = devices(group, port)
@@ -87,25 +100,25 @@ def test_installed_node_serves_sdo_nmt_and_the_cli_over_udp_multicast(
     response = call(nmt_command, NmtCommand.Request(
         node_id=5, command=NmtCommand.Request.START), 'nmt_command 5 START', gateway)
     assert response.success, response.message
-    wait_until(lambda: latest_states() == {2: 'PRE_OPERATIONAL', 5: 'OPERATIONAL'}, 5.0,
+    wait_until(lambda: latest_states() == {2: 'PRE_OPERATIONAL', 5: 'OPERATIONAL'}, 10.0,
                f'node 5 OPERATIONAL on the topic (last {latest_states()})')
     response = call(nmt_state, NmtState.Request(node_id=5), 'nmt_state 5',
                     gateway)
     assert (response.success, response.state_name) == (True, 'OPERATIONAL')
     assert simulated[5].state == NmtState.Response.OPERATIONAL
 
-    cli = subprocess.run([executable('cbcan_cli'), '--gateway', gateway_name, '--wait', '15',
-                          'sdo-read', '5', '0x1000'],
-                         capture_output=True, text=True, timeout=30)
+    cli = subprocess.run([executable('cbcan_cli'), '--gateway', gateway_name,
+                          '--wait', str(START_TIMEOUT), 'sdo-read', '5', '0x1000'],
+                         capture_output=True, text=True, timeout=START_TIMEOUT + 30)
     assert cli.returncode == 0, cli.stdout + cli.stderr
     assert '92 01 02 00' in cli.stdout and '0x00020192' in cli.stdout, cli.stdout
 
     accesses = tmp_path / 'accesses.txt'
     accesses.write_text('# a comment, then a read of what the arguments wrote\nr:5:0x2001\n')
-    cli = subprocess.run([executable('cbcan_cli'), '--gateway', gateway_name, '--wait', '15',
-                          'sdo-batch', 'r:5:0x1000', 'w:5:0x2001:0:3412', 'r:5:0x6000',
-                          '--file', str(accesses)],
-                         capture_output=True, text=True, timeout=30)
+    cli = subprocess.run([executable('cbcan_cli'), '--gateway', gateway_name,
+                          '--wait', str(START_TIMEOUT), 'sdo-batch', 'r:5:0x1000',
+                          'w:5:0x2001:0:3412', 'r:5:0x6000', '--file', str(accesses)],
+                         capture_output=True, text=True, timeout=START_TIMEOUT + 30)
     assert cli.returncode == 1, cli.stdout + cli.stderr  # one access failed
     lines = cli.stdout.splitlines()
     assert lines[0].endswith('read  node 5 0x1000:00  ok  92 01 02 00'), lines
@@ -118,7 +131,7 @@ def test_installed_node_serves_sdo_nmt_and_the_cli_over_udp_multicast(
 
 
 def test_out_of_range_node_id_parameter_ends_the_node_with_a_message(start_node):
-    group, port = random_bus()
+    group, port = private_bus()
     gateway = start_node(['-r', f'__ns:=/proc{uuid.uuid4().hex[:8]}',
                           '-p', 'can.interface:=udp_multicast',
                           '-p', f'can.channel:={group}',
@@ -127,3 +140,32 @@ def test_out_of_range_node_id_parameter_ends_the_node_with_a_message(start_node)
     output = gateway.output()
     assert status != 0, f'cbcan_node exited with status 0 on a bad parameter:\n{output}'
     assert 'nodes' in output and '200' in output and '1..127' in output, output
+
+
+def cpu_seconds(pid: int) -> float:
+    """Return the user + system CPU time a process used so far."""
+    fields = open(f'/proc/{pid}/stat').read().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+
+def test_idle_nodes_do_not_spin(start_node, client_node):
+    # EventsExecutor.spin() was reported to busy-wait; both nodes idle near 0 % of a core.
+    plain_name = f'{namespace()}/cbcan'
+    plain = start_node(arguments(plain_name, '-p', f'can.channel:={new_channel()}'))
+    managed_name = f'{namespace()}/cbcan'
+    managed = start_node(arguments(managed_name, '-p', f'can.channel:={new_channel()}'),
+                         program='cbcan_lifecycle_node')
+    service_client(client_node, SdoRead, f'{plain_name}/sdo_read', plain)
+    change_state = service_client(client_node, ChangeState, f'{managed_name}/change_state',
+                                  managed)
+    for transition in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
+        assert wait_for_future(change_state.call_async(ChangeState.Request(
+            transition=Transition(id=transition))), 30.0).success
+    time.sleep(0.5)
+    before = {p: cpu_seconds(p.process.pid) for p in (plain, managed)}
+    time.sleep(2.0)
+    used = {p: (cpu_seconds(p.process.pid) - before[p]) / 2.0 for p in (plain, managed)}
+    # A busy-wait takes what it gets of a core (half of one on a loaded machine); an idle
+    # node next to nothing.
+    assert used[plain] < 0.25 and used[managed] < 0.25, \
+        f'idle CPU: cbcan_node {used[plain]:.0%}, cbcan_lifecycle_node {used[managed]:.0%}'

@@ -11,7 +11,9 @@ import pytest
 from conftest import frames_before_marker, wait_for_future, wait_until
 
 BIG = bytes((i * 7) % 251 for i in range(65536))
-BIG_TIMEOUT = 20.0  # a request's timeout covers the whole transfer: 64 KiB takes a while
+# A request's timeout covers the whole transfer: 64 KiB segmented take seconds, many more
+# on a loaded machine.
+BIG_TIMEOUT = 60.0
 
 
 def test_expedited_read_returns_the_bytes_on_the_bus(gateway):
@@ -44,9 +46,10 @@ def test_written_value_reads_back(gateway, index, data):
 
 def test_64_kib_object_round_trip(gateway):
     written = gateway.call('sdo_write', node_id=5, index=0x2020, subindex=0, data=list(BIG),
-                           timeout=BIG_TIMEOUT)
+                           timeout=BIG_TIMEOUT, wait=BIG_TIMEOUT + 10.0)
     assert written.success, written.message
-    read = gateway.call('sdo_read', node_id=5, index=0x2020, subindex=0, timeout=BIG_TIMEOUT)
+    read = gateway.call('sdo_read', node_id=5, index=0x2020, subindex=0, timeout=BIG_TIMEOUT,
+                        wait=BIG_TIMEOUT + 10.0)
     assert read.success, read.message
     assert bytes(read.data) == BIG
 
@@ -189,21 +192,22 @@ def test_short_frame_from_a_misbehaving_device_is_ignored_and_named(gateway):
 
 
 def test_slow_device_blocks_neither_other_devices_nor_the_executor(gateway):
-    gateway.device(2).slow_read_delay = 2.0  # far longer than the other calls take, even loaded
-    slow = gateway.call_async('sdo_read', node_id=2, index=0x2200, subindex=0, timeout=5.0)
-    fast = gateway.call('sdo_read', node_id=3, index=0x1000, subindex=0)
+    gateway.device(2).slow_read_delay = 4.0  # far longer than the other calls take, even loaded
+    slow = gateway.call_async('sdo_read', node_id=2, index=0x2200, subindex=0, timeout=10.0)
+    fast = gateway.call('sdo_read', node_id=3, index=0x1000, subindex=0, timeout=2.0)
     state = gateway.call('nmt_state', node_id=3)
     assert fast.success and state.success
     assert not slow.done(), 'the other calls were answered while the slow device was busy'
-    assert wait_for_future(slow, 5.0).success
+    assert wait_for_future(slow, 15.0).success
 
 
 def test_requests_to_one_device_are_served_one_after_another(gateway):
-    slow = gateway.call_async('sdo_read', node_id=2, index=0x2200, subindex=0, timeout=2.0)
-    queued = gateway.call_async('sdo_read', node_id=2, index=0x1000, subindex=0)
-    other = gateway.call('sdo_read', node_id=5, index=0x1000, subindex=0)
+    # The queued request's timeout covers its wait behind the slow one (0.4 s).
+    slow = gateway.call_async('sdo_read', node_id=2, index=0x2200, subindex=0, timeout=5.0)
+    queued = gateway.call_async('sdo_read', node_id=2, index=0x1000, subindex=0, timeout=5.0)
+    other = gateway.call('sdo_read', node_id=5, index=0x1000, subindex=0, timeout=2.0)
     assert other.success
-    wait_until(queued.done, 5.0, 'the queued request')
+    wait_until(queued.done, 10.0, 'the queued request')
     assert slow.done(), 'the queued request was answered only after the slow one'
     assert slow.result().success and queued.result().success
 
@@ -221,9 +225,10 @@ def test_concurrent_calls_to_several_devices_all_get_their_own_answer(gateway):
 def test_block_transfer_falls_back_for_devices_without_it(make_gateway):
     gateway = make_gateway(sdo__block_transfer=True)
     written = gateway.call('sdo_write', node_id=5, index=0x2020, subindex=0, data=list(BIG),
-                           timeout=BIG_TIMEOUT)
+                           timeout=BIG_TIMEOUT, wait=BIG_TIMEOUT + 10.0)
     assert written.success, written.message
-    read = gateway.call('sdo_read', node_id=5, index=0x2020, subindex=0, timeout=BIG_TIMEOUT)
+    read = gateway.call('sdo_read', node_id=5, index=0x2020, subindex=0, timeout=BIG_TIMEOUT,
+                        wait=BIG_TIMEOUT + 10.0)
     assert bytes(read.data) == BIG
     assert bytes(gateway.call('sdo_read', node_id=2, index=0x1008, subindex=0).data) == (
         b'cbcan simulated device')
@@ -236,12 +241,11 @@ def test_destroy_node_answers_waiting_calls_and_sends_no_request(gateway):
                                     timeout=20.0) for _ in range(4)]
         calls += [gateway.call_async('sdo_write', node_id=9, index=0x2002, subindex=0,
                                      data=[1, 2, 3, 4], timeout=20.0) for _ in range(4)]
-        first = wait_until(lambda: bus.recv(0.05), 5.0, 'the first request on the bus')
+        first = wait_until(lambda: bus.recv(0.05), 10.0, 'the first request on the bus')
         assert first.arbitration_id == 0x609 and first.data[0] == 0x40
-        started = time.monotonic()
         gateway.node.destroy_node()
-        answers = [wait_for_future(call, 2.0) for call in calls]
-        assert time.monotonic() - started < 2.0
+        # At once: long before their 20 s timeout (and their answers say why).
+        answers = [wait_for_future(call, 10.0) for call in calls]
         later = []
         while (message := bus.recv(0.2)) is not None:
             later.append(message)

@@ -83,12 +83,15 @@ def test_an_oversized_batch_is_refused_whole_and_names_the_limit(gateway):
 
 
 def test_devices_run_in_parallel_and_the_timeout_bounds_the_batch(gateway):
-    gateway.device(2).slow_read_delay = 1.0
+    # The first slow read ends a second before the batch's timeout, the second runs out of
+    # time midway, the third never starts; the fast device's read is not held up by them.
+    slow, timeout = 2.0, 3.0
+    gateway.device(2).slow_read_delay = slow
     accesses = [read(2, 0x2200), read(2, 0x2200), read(2, 0x2200), read(3, 0x1000)]
     started = time.monotonic()
-    results = batch(gateway, accesses, timeout=1.5)
+    results = batch(gateway, accesses, timeout=timeout)
     elapsed = time.monotonic() - started
-    assert elapsed < 1.5 + 0.5
+    assert elapsed < timeout + slow, 'the batch outlived its timeout'
     assert results[0].success
     assert results[1].abort_code == 0x05040000  # ran out of time during the transfer
     assert results[2].abort_code == 0x05040000

@@ -30,6 +30,13 @@ SPIN_CHECK = 1.0
 # answered "shutting down" at once, took about a second under load.
 SPIN_STOP = 5.0
 
+# The longest a shutdown may take from the first signal (the README's promise). Its steps
+# wait for threads with timeouts of their own (SPIN_STOP, ANSWER_GRACE, the bus and device
+# threads), which add up to about this much only when several hang at once; a step that
+# hangs without a timeout (a driver stuck in a system call) must not keep the process alive.
+SHUTDOWN_LIMIT = 10.0
+SHUTDOWN_OVERRUN = 1  # the exit status when shutdown did not finish within SHUTDOWN_LIMIT
+
 # Failures of the executor in a row after which the node gives up (exit status 1) rather
 # than spin in a loop of errors.
 EXECUTOR_FAILURES = 100
@@ -127,6 +134,9 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
     spinner.start()
     stop.wait()  # the main thread only waits: signal handlers run here at once
     node.get_logger().info('shutting down: answering waiting calls')
+    overrun = threading.Timer(SHUTDOWN_LIMIT, give_up_shutdown, (node, program))
+    overrun.daemon = True
+    overrun.start()
     node.shut_down_gateway()
     # Executor.shutdown() does not wait for a spin in progress and destroys what that spin
     # uses (rclpy 7.1.6): end the spinning first (the gateway is stopped, so whatever it
@@ -138,7 +148,19 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
     executor.shutdown(timeout_sec=ANSWER_GRACE)
     node.destroy_node()
     rclpy.try_shutdown()
+    overrun.cancel()
     return 1 if broken else 0
+
+
+def give_up_shutdown(node: Node, program: str) -> None:
+    """End the process that did not finish shutting down within ``SHUTDOWN_LIMIT``."""
+    message = (f'{program}: shutdown did not finish within {SHUTDOWN_LIMIT:.0f} s; '
+               f'exiting without it')
+    try:
+        node.get_logger().error(message)
+    except Exception:  # noqa: BLE001 - rclpy may be half gone: say it on stderr instead
+        print(message, file=sys.stderr, flush=True)
+    os._exit(SHUTDOWN_OVERRUN)
 
 
 def main(args=None) -> int:
