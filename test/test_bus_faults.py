@@ -231,9 +231,7 @@ def test_lss_calls_are_answered_at_once_when_the_bus_goes_down_and_work_after(st
                    'the scan under way')
         faults.fail_open('adapter gone')
         faults.fail_receive('adapter unplugged')
-        started = time.monotonic()
-        response = wait_for_future(scan, 30.0)
-        assert time.monotonic() - started < PROMPT * 3
+        response = wait_for_future(scan, PROMPT * 3)  # its own timeout is 60 s
         assert not response.success
         assert 'the CAN bus is down' in response.message, response.message
         refused = gateway.call('lss_inquire', identity=LssIdentity(
