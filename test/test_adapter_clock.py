@@ -21,7 +21,7 @@ from cbcan_ros.simulation.durand_device import DOMAIN_DEFAULT, DOMAIN_INDEX, Dur
 from cbcan_ros.srv import NmtState, SdoRead, SdoWrite
 
 from conftest import new_channel, wait_until
-from node_process import call, random_bus, service_client
+from node_process import call, private_bus, service_client
 
 NODE = 7
 ROUNDS = 20
@@ -85,7 +85,7 @@ def test_the_installed_node_answers_whatever_the_adapter_clock(start_node, clien
                                                                device_on, monkeypatch,
                                                                tmp_path, adapter_clock):
     """The adapter bus is a python-can plugin, found as the node would find a vendor's."""
-    group, port = random_bus()
+    group, port = private_bus()
     device_on(interface='udp_multicast', channel=group, bus_options={'port': port})
     monkeypatch.setenv('PYTHONPATH', adapter_clock_bus.plugin_path(tmp_path) + ':' +
                        os.environ.get('PYTHONPATH', ''))

@@ -19,7 +19,7 @@ from cbcan_ros.core.gateway import Gateway, GatewayConfig
 from cbcan_ros.srv import NmtState, SdoRead
 
 from conftest import new_channel, wait_until
-from node_process import call, random_bus, service_client
+from node_process import call, private_bus, service_client
 
 SILENT = 9  # nobody answers it: only the frames the test sends are on its COB-IDs
 MARKER = 10  # a heartbeat of this node, sent after the flood, tells it was all dispatched
@@ -74,7 +74,7 @@ def test_another_sdo_client_on_the_bus_does_not_grow_the_node_s_memory(start_nod
     The installed node reads node 9 once; then 60,000 frames on 0x589 (the device answering
     another SDO client) pass on the bus. Expected: the node's RSS stays flat.
     """
-    group, port = random_bus()
+    group, port = private_bus()
     name = f'/idle{uuid.uuid4().hex[:8]}/cbcan'
     gateway = start_node(['-r', f'__ns:={name.rsplit("/", 1)[0]}',
                           '-p', 'can.interface:=udp_multicast', '-p', f'can.channel:={group}'],

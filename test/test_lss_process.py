@@ -15,7 +15,7 @@ from cbcan_ros.ros.interface import NODE_STATES_QOS
 from cbcan_ros.simulation.durand_device import DurandDevice
 
 from conftest import wait_until
-from node_process import executable, random_bus, START_TIMEOUT
+from node_process import executable, private_bus, START_TIMEOUT
 
 VENDOR, PRODUCT, REVISION = 0x319, 0x51, 0x10000
 SERIALS = (0x12, 0x7, 0x30)
@@ -24,7 +24,7 @@ SERIALS = (0x12, 0x7, 0x30)
 @pytest.fixture
 def commissioning(start_node, client_node):
     """Start three new devices and the node on a udp_multicast bus; yield (name, devices)."""
-    group, port = random_bus()
+    group, port = private_bus()
     devices = [DurandDevice(255, 'udp_multicast', group, bus_options={'port': port}, lss=True,
                             identity=(VENDOR, PRODUCT, REVISION, serial))
                for serial in SERIALS]

@@ -220,7 +220,10 @@ def test_any_lss_request_gets_one_honest_answer(gateway, service, node_id, bitra
             'out of range' in response.message or 'not in the CiA 305' in response.message
             or 'nothing to configure' in response.message or 'needs store' in response.message)
     if service == 'lss_scan':
-        assert response.success == (node_id <= 127 and not bad_timeout), response.message
+        valid = node_id <= 127 and not bad_timeout
+        # A timeout shorter than one probe's wait ends even an empty scan: said so, not found.
+        short = valid and 0.0 < timeout < 0.3 and 'ran out of time' in response.message
+        assert response.success == (valid and not short), response.message
         assert list(response.devices) == []
     elif service == 'lss_inquire':
         assert not response.success

@@ -19,7 +19,7 @@ from cbcan_ros.simulation.durand_device import DurandDevice, PdoConfig
 from cbcan_ros.srv import NmtCommand, PdoWrite
 
 from conftest import wait_until
-from node_process import call, EDS, random_bus, service_client, START_TIMEOUT
+from node_process import call, EDS, private_bus, service_client, START_TIMEOUT
 
 DEVICES = (5, 6)
 EVENT_TIMER = 50  # ms
@@ -48,7 +48,7 @@ def devices():
 
 def test_a_subscriber_in_another_process_gets_every_devices_pdos_and_can_send(
         start_node, client_node, devices):
-    group, port = random_bus()
+    group, port = private_bus()
     namespace = f'/pdo{uuid.uuid4().hex[:8]}'
     name = f'{namespace}/cbcan'
     simulated = devices(group, port)
