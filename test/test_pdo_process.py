@@ -103,7 +103,8 @@ def test_a_subscriber_in_another_process_gets_every_devices_pdos_and_can_send(
 
     # Diagnostics: PDOs per second both ways, and SYNC heard back (udp_multicast echoes).
     device = recorder.wait_for(f'{name}: node 5', DiagnosticStatus.OK, timeout=10.0,
-                               where=lambda v: float(v['PDOs received/s']) > 10)
+                               where=lambda v: float(v['PDOs received/s']) > 10
+                               and int(v['PDOs sent']) > 0)
     assert int(values(device)['PDOs sent']) == 1
     assert values(device)['PDO frames too short'] == '0'
     sync = recorder.wait_for(f'{name}: SYNC', DiagnosticStatus.OK, timeout=10.0,
