@@ -261,24 +261,38 @@ def gateway(make_gateway):
 
 
 @pytest.fixture
-def durand_device():
-    """Return a factory ``durand_device(interface, channel, **options)`` for a device 2.
+def start_durand():
+    """Return ``start_durand(node_id, **options)``: a started durand device.
 
-    The device (the independent durand stack) holds 64 KiB in its DOMAIN 0x2020.
+    durand is the independent device stack (``DurandDevice`` and its options); every device
+    the factory started is stopped after the test.
     """
     from cbcan_ros.simulation.durand_device import DurandDevice
     started = []
 
-    def factory(interface: str, channel: str, **options):
-        device = DurandDevice(2, interface, channel, bus_options=options or None)
+    def factory(node_id: int, **options):
+        device = DurandDevice(node_id, **options)
         device.start()
-        device.set_value(0x2020, 0, bytes(range(256)) * 256)
         started.append(device)
         return device
 
     yield factory
     for device in started:
         device.stop()
+
+
+@pytest.fixture
+def durand_device(start_durand):
+    """Return a factory ``durand_device(interface, channel, **options)`` for a device 2.
+
+    The device holds 64 KiB in its DOMAIN 0x2020.
+    """
+    def factory(interface: str, channel: str, **options):
+        device = start_durand(2, interface=interface, channel=channel,
+                              bus_options=options or None)
+        device.set_value(0x2020, 0, bytes(range(256)) * 256)
+        return device
+    return factory
 
 
 @pytest.fixture

@@ -17,7 +17,7 @@ import pytest
 from cbcan_ros.core.gateway import Gateway, GatewayConfig
 from cbcan_ros.msg import NodeStates
 from cbcan_ros.ros.interface import NODE_STATES_QOS
-from cbcan_ros.simulation.durand_device import DOMAIN_DEFAULT, DOMAIN_INDEX, DurandDevice
+from cbcan_ros.simulation.durand_device import DOMAIN_DEFAULT, DOMAIN_INDEX
 from cbcan_ros.srv import NmtState, SdoRead, SdoWrite
 
 from conftest import new_channel, wait_until
@@ -34,27 +34,11 @@ CLOCKS = ['offset:-5', 'offset:-0.8', 'offset:-0.05', 'offset:1', 'offset:5',
 adapter_clock_bus.register()
 
 
-@pytest.fixture
-def device_on():
-    """Return a factory ``device_on(**bus)`` starting durand device NODE on that bus."""
-    started = []
-
-    def factory(**bus) -> DurandDevice:
-        device = DurandDevice(NODE, **bus)
-        device.start()
-        started.append(device)
-        return device
-
-    yield factory
-    for device in started:
-        device.stop()
-
-
 @pytest.mark.parametrize('adapter_clock', CLOCKS)
-def test_every_answer_and_heartbeat_arrives_whatever_the_adapter_clock(device_on,
+def test_every_answer_and_heartbeat_arrives_whatever_the_adapter_clock(start_durand,
                                                                        adapter_clock):
     channel = new_channel()
-    device_on(channel=channel)
+    start_durand(NODE, channel=channel)
     gateway = Gateway(GatewayConfig(interface=adapter_clock_bus.INTERFACE_NAME,
                                     channel=channel, bus_options={'clock': adapter_clock},
                                     expected_nodes=(NODE,)))
@@ -82,11 +66,11 @@ def _fresh(status) -> bool:
 
 @pytest.mark.parametrize('adapter_clock', ['offset:-5', 'boot'])
 def test_the_installed_node_answers_whatever_the_adapter_clock(start_node, client_node,
-                                                               device_on, monkeypatch,
+                                                               start_durand, monkeypatch,
                                                                tmp_path, adapter_clock):
     """The adapter bus is a python-can plugin, found as the node would find a vendor's."""
     group, port = private_bus()
-    device_on(interface='udp_multicast', channel=group, bus_options={'port': port})
+    start_durand(NODE, interface='udp_multicast', channel=group, bus_options={'port': port})
     monkeypatch.setenv('PYTHONPATH', adapter_clock_bus.plugin_path(tmp_path) + ':' +
                        os.environ.get('PYTHONPATH', ''))
     namespace = f'/clock{uuid.uuid4().hex[:8]}'

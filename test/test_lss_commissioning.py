@@ -41,23 +41,15 @@ def identities(response):
 
 
 @pytest.fixture
-def lss_device():
+def lss_device(start_durand):
     """Return a factory ``lss_device(harness, serial, node_id=255, **options)``.
 
     It starts a durand LSS slave on the harness's bus, stopped after the test.
     """
-    started = []
-
     def factory(harness, serial: int, node_id: int = 255, **options) -> DurandDevice:
-        device = DurandDevice(node_id, channel=harness.channel, lss=True,
-                              identity=(VENDOR, PRODUCT, REVISION, serial), **options)
-        device.start()
-        started.append(device)
-        return device
-
-    yield factory
-    for device in started:
-        device.stop()
+        return start_durand(node_id, channel=harness.channel, lss=True,
+                            identity=(VENDOR, PRODUCT, REVISION, serial), **options)
+    return factory
 
 
 def frames(bus: can.BusABC, within: float, can_id=None):
