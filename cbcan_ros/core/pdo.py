@@ -552,6 +552,8 @@ class PdoService:
             rpdos = self._read_kind(device, 'rpdo', RPDO_COMMUNICATION, RPDO_MAPPING)
         except _ReadFailed as error:
             with self._lock:
+                if self._closing:
+                    return  # shutdown ended the read: no fault of the device
                 device.done = -request
                 device.failed_at = time.monotonic()
                 device.mapping_text = f'read failed: {error}'
