@@ -15,7 +15,7 @@ from test_diagnostics import DiagnosticsRecorder, values
 
 from cbcan_ros.msg import Pdo, PdoEntry
 from cbcan_ros.ros.pdo import PDO_QOS
-from cbcan_ros.simulation.durand_device import DurandDevice, PdoConfig
+from cbcan_ros.simulation.durand_device import PdoConfig
 from cbcan_ros.srv import NmtCommand, PdoWrite
 
 from conftest import wait_until
@@ -29,21 +29,13 @@ PDOS = (PdoConfig('tpdo', 1, ((0x2001, 0), (0x2003, 0)), transmission_type=1),
 
 
 @pytest.fixture
-def devices():
+def devices(start_durand):
     """Return a factory ``devices(group, port)`` starting durand devices 5 and 6."""
-    started = []
-
     def factory(group: str, port: int):
-        for node_id in DEVICES:
-            device = DurandDevice(node_id, 'udp_multicast', group, bus_options={'port': port},
-                                  pdos=PDOS)
-            device.start()
-            started.append(device)
-        return {device.node_id: device for device in started}
-
-    yield factory
-    for device in started:
-        device.stop()
+        return {node_id: start_durand(node_id, interface='udp_multicast', channel=group,
+                                      bus_options={'port': port}, pdos=PDOS)
+                for node_id in DEVICES}
+    return factory
 
 
 def test_a_subscriber_in_another_process_gets_every_devices_pdos_and_can_send(
