@@ -1,11 +1,13 @@
 """Frames waiting to be handed to canopen: what a backlog between receipt and dispatch does.
 
-The bus supervisor's receive thread takes each frame from the driver and stamps it; a second
-thread hands the frames to canopen's subscribers (``core/bus.py``). Whenever that dispatch is
-behind (a burst of frames, a busy machine, a handler that takes its time), frames wait between
-the two threads. These tests hold the dispatch on purpose, with a handler on a COB-ID no
-CANopen service uses that returns when the test says, and look at what a user then sees: node
-states, heartbeat ages, EMCY times and the gateway's memory.
+The bus supervisor's receive thread takes each frame from the driver and stamps it. It hands
+a frame to canopen's subscribers itself only when all of them are marked prompt and nothing
+waits; other frames go to a dispatch thread, and every frame behind them waits there too
+(``core/bus.py``). Whenever that dispatch is behind (a burst of frames, a busy machine, a
+handler that takes its time), frames wait between the two threads. These tests hold the
+dispatch on purpose, with a handler on a COB-ID no CANopen service uses that returns when
+the test says, and look at what a user then sees: node states, heartbeat ages, EMCY times
+and the gateway's memory.
 """
 
 import sys
@@ -15,6 +17,7 @@ import time
 import can
 import pytest
 
+from cbcan_ros.core.bus import prompt
 from cbcan_ros.core.gateway import Gateway, GatewayConfig
 
 from conftest import new_channel, wait_until
@@ -118,6 +121,32 @@ def test_heartbeats_waiting_for_dispatch_do_not_revive_nodes_once_the_bus_is_dow
         f'while the bus is down: {gateway.bus_status.reason}')
 
 
+def test_prompt_handlers_see_frames_in_the_order_received_whichever_thread_hands_them_on(
+        bus_with_gateway):
+    """A user sees node 5 in the state of an older heartbeat than its last one.
+
+    Heartbeats are handled by the receive thread itself while nothing waits for dispatch.
+    Three heartbeats arrive while an earlier frame holds the dispatch: they must wait behind
+    it, not overtake it; the one after the release must come after them, not before.
+    """
+    gateway, device, _, _ = bus_with_gateway
+    seen = []
+    gateway.network.subscribe(0x700 + NODE, prompt(lambda _id, data, _stamp: seen.append(
+        (data[0], threading.current_thread().name))))
+    holding = hold(bus_with_gateway)
+    send_and_wait_received(gateway, device, *(frame(0x700 + NODE, bytes([state]))
+                                              for state in (0x7F, 0x05, 0x04)))
+    assert seen == [], 'heartbeats overtook a frame received before them'
+    holding.release()
+    wait_until(lambda: len(seen) == 3, 10.0, 'the three waiting heartbeats')
+    device.send(frame(0x700 + NODE, b'\x05'))
+    wait_until(lambda: len(seen) == 4, 10.0, 'the heartbeat after the release')
+    assert [state for state, _ in seen] == [0x7F, 0x05, 0x04, 0x05]
+    assert {thread for _, thread in seen[:3]} == {'can-dispatch'}
+    assert seen[3][1] == 'can-bus', 'with nothing waiting, a prompt frame is not queued'
+    assert gateway.monitor.status(NODE).state_name == 'OPERATIONAL'
+
+
 def test_a_heartbeat_s_age_counts_from_its_receipt_not_its_dispatch(bus_with_gateway):
     """A user sees a node "last seen 0.0 s ago" that last spoke seconds ago.
 
@@ -201,8 +230,9 @@ def test_frames_waiting_for_dispatch_do_not_grow_memory_without_bound(bus_with_g
         f'dispatch: every frame is kept')
 
 
+@pytest.mark.parametrize('marked', [False, True], ids=['dispatch_thread', 'receive_thread'])
 def test_a_handler_that_raises_is_logged_once_and_the_others_still_get_their_frames(
-        bus_with_gateway, caplog):
+        bus_with_gateway, caplog, marked):
     """A frame handler failing on every frame costs one log line; states and SDO go on."""
     gateway, device, _, _ = bus_with_gateway
     failures = []
@@ -210,7 +240,7 @@ def test_a_handler_that_raises_is_logged_once_and_the_others_still_get_their_fra
     def failing(*_frame):
         failures.append(1)
         raise ValueError('a broken handler')
-    gateway.network.subscribe(HOLD_ID, failing)
+    gateway.network.subscribe(HOLD_ID, prompt(failing) if marked else failing)
     for _ in range(50):
         device.send(frame(HOLD_ID, b'\x00'))
     device.send(frame(0x700 + NODE, b'\x05'))

@@ -10,13 +10,17 @@ Frames go to canopen through ``Network.notify``, the hook canopen offers custom 
 the network's ``bus`` is a small proxy whose ``send`` goes through the supervisor, so a send
 on a bus that is down fails at once with :class:`BusDown` instead of reaching a dead driver.
 
-Two threads share the work. The receive thread only takes frames from the driver and stamps
-each with the host's monotonic clock as it takes it; the dispatch thread hands them to
-canopen in that order. An adapter's own timestamp is never used: adapters' clocks are offset
-from the host's (by seconds on some) and drift. And a frame handler that takes its time (or
-a burst of frames) holds up only the dispatch: frames are still taken and stamped as they
-come, so a frame that was on the bus before a request was sent is stamped before it, and
-the SDO client can tell it is not the request's answer.
+The receive thread takes frames from the driver and stamps each with the host's monotonic
+clock as it takes it. An adapter's own timestamp is never used: adapters' clocks are offset
+from the host's (by seconds on some) and drift. A frame whose handlers are all marked
+:func:`prompt` (they return at once: SDO answers, heartbeats, PDOs, LSS answers) is handed
+to canopen by the receive thread itself when nothing is waiting for dispatch, which spares
+the frame a wake-up of another thread. Every other frame, and every frame behind it, goes
+to the dispatch thread in the order taken. So a frame handler that takes its time (or a
+burst of frames) holds up only the dispatch: frames are still taken and stamped as they
+come, a frame that was on the bus before a request was sent is stamped before it (and the
+SDO client can tell it is not the request's answer), and handlers see the frames in the
+order they were received, one at a time.
 """
 
 import contextlib
@@ -52,6 +56,17 @@ def wall_clock(stamp: float) -> float:
     times shown to people and in ROS messages.
     """
     return time.time() - (time.monotonic() - stamp)
+
+
+def prompt(handler: Callable) -> Callable:
+    """Mark a frame handler that returns at once: no I/O, no waiting beyond a short lock.
+
+    Frames whose handlers are all prompt may be handled by the receive thread itself; a
+    handler that is not prompt (or not marked) runs on the dispatch thread, where it cannot
+    delay the stamping of later frames.
+    """
+    handler.prompt_handler = True
+    return handler
 
 
 def slcan_bitrates() -> List[int]:
@@ -123,7 +138,8 @@ class BusSupervisor:
         self._gate_reason = ''
         self._reopen_count = 0
         self._received = 0
-        self._dispatched = 0  # written by the dispatch thread only
+        self._queued = 0      # frames given to the dispatch thread
+        self._dispatched = 0  # of those, frames whose handlers have returned
         self._dropped = 0
         self._sent = 0
         self._error_frames = 0
@@ -247,6 +263,8 @@ class BusSupervisor:
         # The hot path: flags are read and this thread's own counters bumped without the
         # lock (one writer; reading an attribute is atomic), so a frame costs no lock.
         frames = self._frames
+        subscribers = self._network.subscribers
+        notify = self._network.notify
         while True:
             if self._stopping:
                 return None
@@ -267,8 +285,11 @@ class BusSupervisor:
             # CANopen (CiA 301) uses 11-bit identifiers: extended frames are not for us.
             if message.is_remote_frame or message.is_extended_id:
                 continue
-            # Each counter has one writer (this thread, the dispatch thread): no lock.
-            if self._received - self._dispatched >= DISPATCH_BACKLOG:
+            # Each counter has one writer (_dispatched the dispatch thread, the others this
+            # thread): no lock. Frames are waiting while the dispatch thread has not returned
+            # from all it was given.
+            waiting = self._queued != self._dispatched
+            if self._queued - self._dispatched >= DISPATCH_BACKLOG:
                 self._dropped += 1
                 if self._dropped == 1:
                     LOGGER.error('CAN bus %s: frames arrive faster than they can be handled; '
@@ -276,23 +297,40 @@ class BusSupervisor:
                                  'bus status)', self.description, DISPATCH_BACKLOG)
                 continue
             self._received += 1
-            frames.put((message.arbitration_id, message.data, stamp))
+            frame_id = message.arbitration_id
+            if not waiting:  # (a loop, not all(): this runs for every frame)
+                for handler in subscribers.get(frame_id, ()):
+                    if not getattr(handler, 'prompt_handler', False):
+                        waiting = True
+                        break
+            if waiting:
+                self._queued += 1
+                frames.put((frame_id, message.data, stamp))
+                continue
+            try:
+                notify(frame_id, message.data, stamp)
+            except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest
+                self._handler_failed(error)
 
     def _dispatch(self) -> None:
-        """Hand the frames to canopen's subscribers, in the order they were taken."""
+        """Hand the queued frames to canopen's subscribers, in the order they were taken."""
         frames = self._frames
+        notify = self._network.notify
         while True:
             frame = frames.get()
             if frame is None:
                 return
-            self._dispatched += 1
             try:
-                self._network.notify(*frame)
+                notify(*frame)
             except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest
-                kind = type(error).__name__
-                if kind not in self._listener_errors:
-                    self._listener_errors.add(kind)
-                    LOGGER.exception('a frame handler failed (%s); receiving goes on', kind)
+                self._handler_failed(error)
+            self._dispatched += 1
+
+    def _handler_failed(self, error: Exception) -> None:
+        kind = type(error).__name__
+        if kind not in self._listener_errors:
+            self._listener_errors.add(kind)
+            LOGGER.exception('a frame handler failed (%s); receiving goes on', kind)
 
     def _coming_up(self, bus: can.BusABC) -> None:
         with self._lock:

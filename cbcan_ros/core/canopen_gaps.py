@@ -57,7 +57,7 @@ from canopen.sdo.client import SdoClient, WritableStream
 from canopen.sdo.exceptions import SdoAbortedError
 
 from . import abort_codes
-from .bus import BusDown
+from .bus import BusDown, prompt
 
 # Client command specifiers (CiA 301), top three bits of the first byte of a request.
 _CCS_DOWNLOAD_SEGMENT = 0
@@ -174,6 +174,7 @@ class StrictSdoClient(SdoClient):
 
     # canopen calls these four from its transfer streams.
 
+    @prompt
     def on_response(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Queue a response frame with ``timestamp``: when the receive path took it."""
         responses = self.responses

@@ -27,7 +27,7 @@ from typing import Callable, Iterable, List, Optional, Set, Tuple
 
 from canopen import lss as cia305
 
-from .bus import BusDown
+from .bus import BusDown, prompt
 from .sdo import answer, Deadlines, JobQueue, MAX_NODE_ID, resolved
 
 LOGGER = logging.getLogger(__name__)
@@ -176,6 +176,7 @@ class _Responses:
         self._frames: deque = deque(maxlen=64)
         self._cancelled: Optional[str] = None
 
+    @prompt
     def on_frame(self, _can_id: int, data: bytearray, timestamp: float) -> None:
         with self._changed:
             self._frames.append((timestamp, bytes(data)))

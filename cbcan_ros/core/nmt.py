@@ -11,7 +11,7 @@ import threading
 import time
 from typing import Callable, Dict, Iterable, List, Optional
 
-from .bus import wall_clock
+from .bus import prompt, wall_clock
 
 HEARTBEAT_COB_BASE = 0x700
 
@@ -78,13 +78,12 @@ class NodeStatus:
 
 
 class _Entry:
-    __slots__ = ('state', 'detected', 'last_monotonic', 'last_wall')
+    __slots__ = ('state', 'detected', 'last_monotonic')
 
     def __init__(self):
         self.state = NOT_DETECTED
         self.detected = False
         self.last_monotonic: Optional[float] = None
-        self.last_wall: Optional[float] = None
 
 
 class HeartbeatMonitor:
@@ -100,7 +99,10 @@ class HeartbeatMonitor:
         self._nodes: Dict[int, _Entry] = {node_id: _Entry() for node_id in expected_nodes}
         self._listeners: List[Callable[[], None]] = []
         self._lost_at = float('-inf')  # when the bus last went down (time.monotonic())
-        self._changed = threading.Condition()
+        # Heartbeats take the plain lock (cheaper than entering the Condition, and every
+        # frame pays for it); the watcher waits on the Condition built on it.
+        self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)
         self._running = False
         self._watcher = threading.Thread(target=self._watch, name='heartbeat-timeouts',
                                          daemon=True)
@@ -143,16 +145,18 @@ class HeartbeatMonitor:
         state = entry.state if entry.detected else NOT_DETECTED
         if entry.last_monotonic is None:
             return NodeStatus(node_id, state, None, -1.0, entry.detected)
-        return NodeStatus(node_id, state, entry.last_wall, now - entry.last_monotonic,
+        return NodeStatus(node_id, state, wall_clock(entry.last_monotonic),
+                          now - entry.last_monotonic,
                           entry.detected)
 
+    @prompt
     def _on_frame(self, can_id: int, data: bytearray, stamp: float) -> None:
         """Take a heartbeat, boot-up or guarding reply received at ``stamp`` (monotonic)."""
         if not data:
             return
         node_id = can_id - HEARTBEAT_COB_BASE
         state = data[0] & 0x7F  # bit 7 is the node guarding toggle bit
-        with self._changed:
+        with self._lock:
             if stamp <= self._lost_at:
                 return  # heard before the bus went down: it says nothing of the node now
             entry = self._nodes.get(node_id)
@@ -163,7 +167,6 @@ class HeartbeatMonitor:
             entry.state = state
             entry.detected = True
             entry.last_monotonic = stamp
-            entry.last_wall = wall_clock(stamp)
             if changed:
                 self._changed.notify_all()
         if changed:

@@ -34,7 +34,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 from canopen.objectdictionary import datatypes, ObjectDictionary
 
 from . import abort_codes
-from .bus import BusDown, BusStatus
+from .bus import BusDown, BusStatus, prompt
 from .nmt import BOOT_UP, HEARTBEAT_COB_BASE
 from .sdo import Access, answer, resolved, SdoResult
 
@@ -509,6 +509,7 @@ class PdoService:
         for future in futures:
             answer(future, result)
 
+    @prompt
     def _on_heartbeat(self, can_id: int, data: bytearray, _timestamp: float) -> None:
         if not data:
             return
@@ -654,6 +655,7 @@ class PdoService:
         LOGGER.info('node %d: PDO parameters of its EDS written (%d objects)',
                     device.node_id, len(accesses))
 
+    @prompt
     def _on_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
         mapping = self._by_cob.get(can_id)
         if mapping is None:

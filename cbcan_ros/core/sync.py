@@ -24,7 +24,7 @@ from typing import Callable, List, Optional
 
 import can
 
-from .bus import BusDown, BusStatus, BusSupervisor
+from .bus import BusDown, BusStatus, BusSupervisor, prompt
 
 LOGGER = logging.getLogger(__name__)
 
@@ -175,6 +175,7 @@ class SyncProducer:
                 callbacks, self._after_sync = self._after_sync, []
             _run_all(callbacks)
 
+    @prompt
     def _on_sync_heard(self, _can_id: int, _data: bytearray, timestamp: float) -> None:
         with self._lock:
             self._heard += 1
