@@ -5,6 +5,8 @@ config/simulated_device.eds: TPDO 1 and 2 every 100 ms while operational, RPDO 1
 objects), node 5 with that EDS as ``node_5.eds``, node 2 without.
 """
 
+import contextlib
+import io
 import uuid
 
 import pytest
@@ -23,6 +25,16 @@ def cli_run():
                            '-p', 'simulation.devices:=[2, 5]', '-p', 'nodes:=[2, 5]',
                            '-p', 'pdo.nodes:=[2, 5]', '-p', f'node_5.eds:={EDS}'])
     client = Client(f'{namespace}/cbcan', START_TIMEOUT)
+
+    def mapping_of_5_read() -> bool:
+        # A value out of range is refused before anything is sent, by the mapping once read.
+        with contextlib.redirect_stdout(io.StringIO()), \
+                contextlib.redirect_stderr(io.StringIO()) as err:
+            run(client, build_parser().parse_args(['pdo-write', '5', '1',
+                                                   'Demo UNSIGNED8=256']))
+        return 'not read yet' not in err.getvalue()
+    # Tests run in any order on either worker: none may find the mapping still being read.
+    wait_until(mapping_of_5_read, START_TIMEOUT, "node 5's PDO mapping read")
 
     def cli(capsys, *arguments):
         status = run(client, build_parser().parse_args(arguments))
