@@ -171,6 +171,24 @@ def test_a_heartbeat_s_age_counts_from_its_receipt_not_its_dispatch(bus_with_gat
         f'received')
 
 
+def test_a_heartbeat_keeps_its_time_when_the_wall_clock_is_stepped(bus_with_gateway,
+                                                                    monkeypatch):
+    """A user sees node_states' last_seen of one and the same heartbeat change.
+
+    The wall clock is stepped (NTP, a user setting the date) between two looks at a node
+    that has not beaten again: its last_seen must stay the time the heartbeat arrived.
+    """
+    gateway, device, _, _ = bus_with_gateway
+    device.send(frame(0x700 + NODE, b'\x05'))
+    wait_until(lambda: gateway.monitor.status(NODE).detected, 10.0, 'node 5 detected')
+    before = gateway.monitor.status(NODE)
+    wall = time.time
+    monkeypatch.setattr(time, 'time', lambda: wall() + 3600.0)
+    after = gateway.monitor.status(NODE)
+    assert after.last_seen == before.last_seen, (
+        f'last_seen moved by {after.last_seen - before.last_seen:.1f} s with the clock')
+
+
 def test_an_emcy_s_time_is_its_receipt_not_its_dispatch(bus_with_gateway):
     """A user sees an EMCY stamped later than the device sent it (its time of dispatch).
 

@@ -63,7 +63,9 @@ def prompt(handler: Callable) -> Callable:
 
     Frames whose handlers are all prompt may be handled by the receive thread itself; a
     handler that is not prompt (or not marked) runs on the dispatch thread, where it cannot
-    delay the stamping of later frames.
+    delay the stamping of later frames. The mark is on the function, so every subscription
+    of it is prompt. The marks are looked at just before a frame is handed on: a handler
+    subscribed in that very moment may get that one frame from the receive thread.
     """
     handler.prompt_handler = True
     return handler

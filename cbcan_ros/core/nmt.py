@@ -78,12 +78,15 @@ class NodeStatus:
 
 
 class _Entry:
-    __slots__ = ('state', 'detected', 'last_monotonic')
+    __slots__ = ('state', 'detected', 'last_monotonic', 'last_wall')
 
     def __init__(self):
         self.state = NOT_DETECTED
         self.detected = False
         self.last_monotonic: Optional[float] = None
+        # Its time on the wall clock, worked out when first asked (not for every frame),
+        # then kept: one heartbeat has one time, however often it is asked for.
+        self.last_wall: Optional[float] = None
 
 
 class HeartbeatMonitor:
@@ -145,8 +148,9 @@ class HeartbeatMonitor:
         state = entry.state if entry.detected else NOT_DETECTED
         if entry.last_monotonic is None:
             return NodeStatus(node_id, state, None, -1.0, entry.detected)
-        return NodeStatus(node_id, state, wall_clock(entry.last_monotonic),
-                          now - entry.last_monotonic,
+        if entry.last_wall is None:
+            entry.last_wall = wall_clock(entry.last_monotonic)
+        return NodeStatus(node_id, state, entry.last_wall, now - entry.last_monotonic,
                           entry.detected)
 
     @prompt
@@ -167,6 +171,7 @@ class HeartbeatMonitor:
             entry.state = state
             entry.detected = True
             entry.last_monotonic = stamp
+            entry.last_wall = None
             if changed:
                 self._changed.notify_all()
         if changed:
