@@ -133,6 +133,32 @@ def frames_before_marker(gateway, bus: can.BusABC, timeout: float = 60.0):
     raise AssertionError('the marker request was not seen on the bus')
 
 
+class Spinning:
+    """Spins ``executor`` in a thread of its own until :meth:`stop`.
+
+    rclpy's ``Executor.shutdown`` waits for running callbacks only, not for a thread that is
+    building its wait set; it then destroys the guard condition that thread is about to use
+    (AttributeError in the spinning thread, seen on a busy machine). So the thread stops
+    spinning first, and the executor is shut down after it has ended.
+    """
+
+    def __init__(self, executor):
+        self.executor = executor
+        self._stopping = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        while not self._stopping.is_set():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def stop(self) -> None:
+        """End the spinning thread, then shut the executor down."""
+        self._stopping.set()
+        self.thread.join(timeout=30.0)
+        self.executor.shutdown()
+
+
 class Harness:
     """The gateway node under test, its simulated devices, a raw view of the bus, clients."""
 
@@ -153,8 +179,7 @@ class Harness:
         self._states_lock = threading.Lock()
         self.client_node.create_subscription(NodeStates, '/cbcan/node_states',
                                              self._on_states, NODE_STATES_QOS)
-        self._spinner = threading.Thread(target=self.executor.spin, daemon=True)
-        self._spinner.start()
+        self._spinning = Spinning(self.executor)
 
     def device(self, node_id: int):
         """Return the simulated device with ``node_id``."""
@@ -204,8 +229,7 @@ class Harness:
 
     def close(self) -> None:
         """Stop spinning, destroy the nodes and close the bus."""
-        self.executor.shutdown(timeout_sec=2.0)
-        self._spinner.join(timeout=5.0)
+        self._spinning.stop()
         self.client_node.destroy_node()
         self.node.destroy_node()
 
@@ -321,9 +345,7 @@ def client_node():
     node = rclpy.create_node(f'process_test_{uuid.uuid4().hex[:8]}')
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    spinning = Spinning(executor)
     yield node
-    executor.shutdown(timeout_sec=2.0)
-    spinner.join(timeout=5.0)
+    spinning.stop()
     node.destroy_node()

@@ -23,7 +23,7 @@ from cbcan_ros.ros.client import (
     Write,
 )
 
-from conftest import new_channel, wait_until
+from conftest import new_channel, Spinning, wait_until
 from node_process import NodeProcess, START_TIMEOUT
 
 # One worker runs the module, so its gateway starts once.
@@ -116,14 +116,12 @@ def test_a_burst_of_awaited_reads_on_the_callers_executor_gets_every_answer_righ
         return await client.read_async(device, index, type='u32')
 
     tasks = [executor.create_task(call, number) for number in range(BURST)]
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    spinning = Spinning(executor)
     try:
         wait_until(lambda: all(task.done() for task in tasks), ANSWER_WAIT,
                    f'{BURST} awaited reads to finish')
     finally:
-        executor.shutdown(timeout_sec=2.0)
-        spinner.join(5.0)
+        spinning.stop()
     wrong = [(number, burst_call(number), task.exception() or task.result())
              for number, task in enumerate(tasks)
              if task.exception() or task.result() != burst_call(number)[2]]
@@ -141,13 +139,11 @@ def test_a_blocking_call_inside_a_callback_of_the_callers_executor_is_answered(c
     node.create_timer(0.01, on_timer)
     executor = SingleThreadedExecutor()  # one thread: a call waiting on it would never end
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    spinning = Spinning(executor)
     try:
         wait_until(lambda: len(answers) == 2, ANSWER_WAIT, 'the calls in the timer callback')
     finally:
-        executor.shutdown(timeout_sec=2.0)
-        spinner.join(5.0)
+        spinning.stop()
     assert answers[0] == device_value(5)
     assert set(DEVICES) <= set(answers[1]), answers[1]
 
@@ -158,15 +154,13 @@ def test_subscribed_node_states_arrive_on_the_callers_executor(client, node):
         (threading.current_thread(), {state.node_id for state in message.nodes})))
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    spinning = Spinning(executor)
     try:
         wait_until(lambda: any(set(DEVICES) <= nodes for _thread, nodes in seen),
                    ANSWER_WAIT, f'node states listing devices {DEVICES} (seen {seen})')
     finally:
-        executor.shutdown(timeout_sec=2.0)
-        spinner.join(5.0)
-    assert {thread for thread, _nodes in seen} == {spinner}
+        spinning.stop()
+    assert {thread for thread, _nodes in seen} == {spinning.thread}
 
 
 def test_a_refusal_raises_with_the_abort_code_and_a_batch_answers_every_access(client):
