@@ -663,6 +663,12 @@ def _add_lss_commands(commands) -> None:
     inquire.set_defaults(run=cmd_lss_inquire)
 
 
+def _pdo_node_argument(command: argparse.ArgumentParser) -> None:
+    """Add the NODE of pdo-echo and pdo-write: a device of the gateway's pdo.nodes."""
+    command.add_argument('node', type=_ranged('node', 1, MAX_NODE_ID), metavar='NODE',
+                         help='node id 1..127 (one of the gateway parameter pdo.nodes)')
+
+
 def _object_arguments(command: argparse.ArgumentParser, subindex_help: str) -> None:
     """Add what sdo-read and sdo-write share: NODE OBJECT [SUBINDEX], --eds and --timeout."""
     command.add_argument('node', type=_node, metavar='NODE',
@@ -775,8 +781,7 @@ def build_parser() -> argparse.ArgumentParser:
                                            "the gateway's ~/node_<id>/rpdo topic), decoded by "
                                            'its mapping, by EDS names where the gateway has '
                                            'node_<id>.eds. Ctrl-C ends it.')
-    echo.add_argument('node', type=_ranged('node', 1, MAX_NODE_ID), metavar='NODE',
-                      help='node id 1..127 (one of the gateway parameter pdo.nodes)')
+    _pdo_node_argument(echo)
     echo.add_argument('--count', type=_ranged('count', 0, 1 << 31), default=0, metavar='N',
                       help='stop after N PDOs (default 0: until Ctrl-C)')
     echo.set_defaults(run=cmd_pdo_echo)
@@ -786,8 +791,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                 'Mapped objects not given keep the value last '
                                                 'sent (0 at first). Names come from the '
                                                 "node's EDS.")
-    pdo_write.add_argument('node', type=_ranged('node', 1, MAX_NODE_ID), metavar='NODE',
-                           help='node id 1..127 (one of the gateway parameter pdo.nodes)')
+    _pdo_node_argument(pdo_write)
     pdo_write.add_argument('pdo', type=_ranged('pdo', 1, 512), metavar='PDO',
                            help="the device's RPDO number 1..512")
     pdo_write.add_argument('assignments', nargs='*', metavar='NAME_OR_INDEX=VALUE',

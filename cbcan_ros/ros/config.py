@@ -23,6 +23,11 @@ def device_file_parameter(node_id: int) -> str:
     return f'node_{node_id}.eds'
 
 
+def _between(lowest: float, highest: float) -> list:
+    """Return the descriptor range of a float parameter from ``lowest`` to ``highest``."""
+    return [FloatingPointRange(from_value=lowest, to_value=highest, step=0.0)]
+
+
 class NodeParameters:
     """The parameters of one gateway node."""
 
@@ -54,8 +59,7 @@ class NodeParameters:
         self._declare('sdo.timeout', 0.5,
                       'Seconds a whole SDO request may take (waiting behind other requests '
                       'to the device included), unless the request gives its own timeout',
-                      floating_point_range=[FloatingPointRange(
-                          from_value=0.001, to_value=60.0, step=0.0)])
+                      floating_point_range=_between(0.001, 60.0))
         self._declare('can.options', Parameter.Type.STRING_ARRAY,
                       'Further python-can bus options as key=value, passed to the interface '
                       'as they are (values parsed as JSON when they can be), e.g. '
@@ -78,8 +82,7 @@ class NodeParameters:
                       'probed bit is 1, so every wait costs. 0 = from can.bitrate: two frames '
                       'on the wire plus 40 ms (at 10 kbit/s when can.bitrate is 0; none on '
                       'virtual and udp_multicast)',
-                      floating_point_range=[FloatingPointRange(
-                          from_value=0.0, to_value=1.0, step=0.0)])
+                      floating_point_range=_between(0.0, 1.0))
         self._declare('sdo.write_allow', Parameter.Type.STRING_ARRAY,
                       f'Objects that SDO writes may reach, each {RULE_FORMAT}; empty = all. '
                       'Other writes are refused with abort 0x08000021 and never sent',
@@ -94,24 +97,20 @@ class NodeParameters:
         self._declare('heartbeat.timeout', 3.0,
                       'Seconds without heartbeat, boot-up or guarding reply after which a '
                       'node is NOT_DETECTED',
-                      floating_point_range=[FloatingPointRange(
-                          from_value=0.01, to_value=3600.0, step=0.0)])
+                      floating_point_range=_between(0.01, 3600.0))
         self._declare('node_guarding', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) without heartbeat producer to poll by node guarding',
                       additional_constraints=checks.NODE_IDS)
         self._declare('node_guarding_period', 1.0,
                       'Seconds between node guarding requests to each guarded node',
-                      floating_point_range=[FloatingPointRange(
-                          from_value=0.01, to_value=60.0, step=0.0)])
+                      floating_point_range=_between(0.01, 60.0))
         self._declare('state_publish_period', 1.0,
                       'Seconds between publications of ~/node_states when nothing changes',
-                      floating_point_range=[FloatingPointRange(
-                          from_value=0.01, to_value=3600.0, step=0.0)])
+                      floating_point_range=_between(0.01, 3600.0))
         self._declare('diagnostics_period', 1.0,
                       'Seconds between publications of the bus and device status on '
                       '/diagnostics (diagnostic_msgs/DiagnosticArray)',
-                      floating_point_range=[FloatingPointRange(
-                          from_value=0.01, to_value=3600.0, step=0.0)])
+                      floating_point_range=_between(0.01, 3600.0))
         self._declare('pdo.nodes', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) whose PDOs the gateway serves: their mapping is read '
                       'over SDO when first heard and after every boot-up; what they send is '
@@ -124,8 +123,7 @@ class NodeParameters:
         self._declare('sync.period', 0.0,
                       'Seconds between SYNC messages the gateway produces (COB-ID 0x80); 0 = '
                       'no SYNC. Synchronous RPDOs go out right after a SYNC',
-                      floating_point_range=[FloatingPointRange(
-                          from_value=0.0, to_value=60.0, step=0.0)])
+                      floating_point_range=_between(0.0, 60.0))
         self._declare('sync.counter_overflow', 0,
                       'SYNC counter (CiA 301): 0 = SYNC without counter; 2..240 = with a '
                       'counter from 1 that wraps after this value',
