@@ -23,17 +23,30 @@ import threading
 import time
 from typing import Callable, Coroutine, Dict, Optional, Tuple
 
-from .rclpy_gaps import drain, intercept_responses
+from .rclpy_gaps import intercept_responses
 
 LOGGER = logging.getLogger(__name__)
 
 
 class CallsInProgress:
-    """Counts the calls that have been taken but not answered, so shutdown can wait."""
+    """Counts the calls taken but not answered yet, and those answered, so shutdown can wait."""
 
     def __init__(self):
         self._count = 0
+        self._answered = 0
         self._idle = threading.Condition()
+
+    @property
+    def waiting(self) -> int:
+        """Return how many calls were taken and are not answered yet."""
+        with self._idle:
+            return self._count
+
+    @property
+    def answered(self) -> int:
+        """Return how many calls were answered (handed to ROS) since the services began."""
+        with self._idle:
+            return self._answered
 
     def begin(self) -> None:
         """Count one more call."""
@@ -44,6 +57,7 @@ class CallsInProgress:
         """Count one call answered."""
         with self._idle:
             self._count -= 1
+            self._answered += 1
             if not self._count:
                 self._idle.notify_all()
 
@@ -80,10 +94,10 @@ class DeferredService:
         self._service = node.create_service(srv_type, name, self._take, **options)
         self._send = intercept_responses(self._service, self._send_when_ready)
 
-    def destroy(self) -> None:
-        """Answer the requests that arrived but were never taken, then take the service away."""
-        drain(self._service)
-        self._node.destroy_service(self._service)
+    @property
+    def service(self):
+        """The rclpy service this answers through."""
+        return self._service
 
     def _take(self, request, response):
         self._calls.begin()

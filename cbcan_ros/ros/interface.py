@@ -15,6 +15,7 @@ import asyncio
 from concurrent.futures import Future
 import logging
 import threading
+import time
 
 from builtin_interfaces.msg import Time
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -66,6 +67,14 @@ PACKAGE = __package__.partition('.')[0]
 
 # How long shutdown waits for answers already decided to leave the node.
 ANSWER_GRACE = 1.0
+
+# How long shutdown keeps the services after handing ROS its last answers, so that answers
+# still inside the middleware reach their callers: a service's writer goes with the service,
+# and what it has not delivered yet goes with it. rmw cannot say when a service's answers are
+# acknowledged (rclpy_gaps 5), so the wait is fixed. Twice at most: once more for requests
+# that arrived while it waited.
+ANSWER_LINGER = 0.5
+LINGER_ROUNDS = 2
 
 # What a call gets while a managed node is configured but not active. 0x08000022: "data
 # cannot be transferred because of the present device state", as during shutdown.
@@ -143,6 +152,7 @@ class GatewayInterface:
         self._node = node
         self.active = active
         self._shutting_down = False
+        self._answered_before_shutdown = 0
         self._log_handler = _RosLogHandler(node.get_logger())
         core_logger = logging.getLogger(PACKAGE)
         core_logger.setLevel(logging.INFO)
@@ -182,6 +192,7 @@ class GatewayInterface:
             for service_type, name, callback in (
                 (NmtCommand, 'nmt_command', self._on_nmt_command),
                 (NmtState, 'nmt_state', self._on_nmt_state))]
+        self._all_services = [deferred.service for deferred in self._deferred] + self._services
 
         self._states_publisher = node.create_publisher(NodeStates, '~/node_states',
                                                        NODE_STATES_QOS)
@@ -234,7 +245,9 @@ class GatewayInterface:
         SDO and mailbox answers leave from the thread that resolves them; this waits up to
         ``ANSWER_GRACE`` seconds for all to leave.
         """
-        self._shutting_down = True
+        if not self._shutting_down:
+            self._shutting_down = True
+            self._answered_before_shutdown = self._calls.answered
         self.gateway.stop()
         self._calls.wait_until_idle(ANSWER_GRACE)
         self._mailbox_loop.close()
@@ -244,11 +257,9 @@ class GatewayInterface:
         self.shut_down()
         for device in self.simulated_devices:
             device.stop()
+        self._answer_the_last_requests()
         node = self._node
-        for deferred in self._deferred:
-            deferred.destroy()
-        for service in self._services:
-            drain(service)
+        for service in self._all_services:
             node.destroy_service(service)
         self._states_closing = True
         self._states_changed.set()
@@ -262,6 +273,35 @@ class GatewayInterface:
         self._pdo_topics.destroy()
         self._diagnostics.destroy()
         logging.getLogger(PACKAGE).removeHandler(self._log_handler)
+
+    def _answer_the_last_requests(self) -> None:
+        """Answer requests the executor never took, and give every answer time to leave.
+
+        Logs how many calls shutdown answered, and any call taken but never answered.
+        """
+        lingered = 0.0
+        answered_then = self._answered_before_shutdown
+        for _ in range(LINGER_ROUNDS):
+            drained = self._drain()
+            if not drained and self._calls.answered == answered_then:
+                break
+            answered_then = self._calls.answered
+            time.sleep(ANSWER_LINGER)
+            lingered += ANSWER_LINGER
+        else:
+            self._drain()  # what arrived during the last wait is answered, not waited for
+        answered = self._calls.answered - self._answered_before_shutdown
+        logger = self._node.get_logger()
+        logger.info(f'shutdown: {answered} calls answered while shutting down; services kept '
+                    f'{lingered:.1f} s for the answers to reach their callers')
+        if self._calls.waiting:
+            logger.error(f'shutdown: {self._calls.waiting} calls taken were never answered')
+
+    def _drain(self) -> int:
+        """Answer the requests waiting in the services; return how many there were."""
+        drained = sum(drain(service) for service in self._all_services)
+        self._calls.wait_until_idle(ANSWER_GRACE)
+        return drained
 
     def _start_read(self, request) -> Future:
         if not self.active:

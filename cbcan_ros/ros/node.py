@@ -141,7 +141,7 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
     # Executor.shutdown() does not wait for a spin in progress and destroys what that spin
     # uses (rclpy 7.1.6): end the spinning first (the gateway is stopped, so whatever it
     # still takes is answered at once), then shut the executor down. Requests it never took
-    # are answered when the services go (deferred.drain).
+    # are answered when the services go (GatewayInterface.destroy).
     spinning.clear()
     executor.wake()
     spinner.join(SPIN_STOP)

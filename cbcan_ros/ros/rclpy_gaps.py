@@ -12,6 +12,9 @@ in the README's "Library gaps worked around":
    ``success: false``), which ends the executor: :func:`refuse_unavailable_transitions`.
 4. A parameter no node declares is silently ignored, and there is no public list of the
    values a node was given: :func:`parameter_overrides`.
+5. A service cannot tell whether its callers acknowledged its answers (a publisher has
+   ``wait_for_all_acked``; rmw has nothing for services), so shutdown cannot wait for exactly
+   that: it keeps the services a fixed ``interface.ANSWER_LINGER`` after the last answer.
 """
 
 from typing import Callable, Dict
@@ -32,22 +35,26 @@ def intercept_responses(service, send_when_ready: Callable) -> Callable:
     return send
 
 
-def drain(service) -> None:
+def drain(service) -> int:
     """Hand each request still waiting in ``service`` (never taken) to its callback, once.
+
+    Return how many there were.
 
     Called once the executor takes no more requests (shutdown) or is busy taking the service
     away (cleanup): without it those callers would wait for ever. The request is taken as
     rclpy's executors take it (``service.handle.service_take_request``).
     """
+    taken = 0
     while True:
         try:
             with service.handle:
                 request, header = service.handle.service_take_request(
                     service.srv_type.Request)
         except InvalidHandle:
-            return
+            return taken
         if header is None:
-            return
+            return taken
+        taken += 1
         service.send_response(service.callback(request, service.srv_type.Response()), header)
 
 
