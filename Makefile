@@ -73,10 +73,13 @@ run: build
 cli: build
 	$(ROS_ENV) cbcan_cli $(ARGS)
 
+# Reports and node logs go to bench/out/ (ignored by git); bench/reference/ holds the
+# results the docs compare against.
 bench: build
 	$(ROS_ENV) python $(ROOT)/bench/bench_sdo.py $(ARGS)
 	$(ROS_ENV) python $(ROOT)/bench/bench_lss.py $(filter --quick,$(ARGS))
 	$(ROS_ENV) python $(ROOT)/bench/bench_pdo.py $(ARGS)
+	$(ROS_ENV) python $(ROOT)/bench/bench_shutdown.py $(filter --quick,$(ARGS))
 
 clean:
 	rm -rf $(ROOT)/build $(ROOT)/install $(ROOT)/log $(ROOT)/.pytest_cache

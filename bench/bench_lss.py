@@ -5,8 +5,8 @@ process on a python-can ``virtual`` bus: the gateway's core (what ``~/lss_scan``
 new durand devices without a node id (LSS slaves of a stack that is not ours). Each round of
 the three-device rows starts three new devices. Two identity sets: the simulation's (few
 1 bits) and random serial numbers as on real devices (every 1 bit is a probe nobody
-answers, so it costs a whole probe wait). Writes ``bench/results/lss.md`` and ``lss.json``;
-a target not met is reported, never fatal.
+answers, so it costs a whole probe wait). Writes ``lss.md`` and ``lss.json`` into
+``bench/out/`` (``--output``); a target not met is reported, never fatal.
 """
 
 import argparse
@@ -19,11 +19,11 @@ import time
 import uuid
 
 from bench_report import machine_info
+from bench_util import logs_to, OUTPUT
 
 from cbcan_ros.core.gateway import Gateway, GatewayConfig
 from cbcan_ros.simulation.durand_device import DurandDevice
 
-HERE = os.path.dirname(os.path.abspath(__file__))
 VENDOR, PRODUCT, REVISION = 0x319, 0x51, 0x10000
 NONE_TARGET = 0.5
 THREE_TARGET = 5.0
@@ -65,7 +65,10 @@ def main(argv=None) -> int:
     """Measure, print and write the LSS rows."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--quick', action='store_true', help='fewer rounds')
+    parser.add_argument('--output', default=OUTPUT,
+                        help='folder of lss.md and lss.json (default %(default)s)')
     args = parser.parse_args(argv)
+    logs_to(os.path.join(args.output, 'lss_logs.txt'))
     rounds = 3 if args.quick else 10
     generator = random.Random(305)
     rows = [
@@ -85,10 +88,9 @@ def main(argv=None) -> int:
                      f"{'met' if r['met'] else '**not met**'} |")
     text = '\n'.join(lines) + '\n'
     print(text)
-    results = os.path.join(HERE, 'results')
-    with open(os.path.join(results, 'lss.md'), 'w') as out:
+    with open(os.path.join(args.output, 'lss.md'), 'w') as out:
         out.write(text)
-    with open(os.path.join(results, 'lss.json'), 'w') as out:
+    with open(os.path.join(args.output, 'lss.json'), 'w') as out:
         json.dump({'machine': machine, 'rows': rows}, out, indent=1, default=str)
     return 0
 

@@ -1,8 +1,8 @@
 """PDO and SYNC benchmarks: the five targets of the PDO feature, one row each.
 
 Run by ``make bench`` after ``bench_sdo.py`` (``make bench ARGS=--quick`` shortens it); writes
-``bench/results/pdo.md`` and ``pdo.json``. A script, not a test: a target that is not met is
-reported, never fatal.
+``pdo.md`` and ``pdo.json`` in ``bench/out/`` (``--output``). A script, not a test: a target
+that is not met is reported, never fatal.
 
 1. Received PDOs published, none lost: 32 devices, 5,000 frames/s in all, everything in one
    process on python-can's ``virtual`` bus (gateway node, a raw sender, the subscriber).
@@ -32,9 +32,8 @@ import time
 from typing import Dict, List
 import uuid
 
-from bench_util import percentile, proc_cpu_seconds, progress
+from bench_util import logs_to, OUTPUT, percentile, proc_cpu_seconds, progress
 
-HERE = os.path.dirname(os.path.abspath(__file__))
 START_TIMEOUT = 60.0
 PDOS = None  # set in main() once the package is importable
 
@@ -141,7 +140,7 @@ def _drain(bus) -> None:
 class UdpNode:
     """The installed cbcan_node in its own process on a private udp_multicast bus."""
 
-    def __init__(self, node_ids: List[int]):
+    def __init__(self, node_ids: List[int], log_path: str):
         self.group = f'239.{random.randint(1, 254)}.{random.randint(0, 255)}.' \
                      f'{random.randint(1, 254)}'
         self.port = random.randint(20000, 40000)
@@ -149,7 +148,7 @@ class UdpNode:
         executable = shutil.which('cbcan_node')
         if not executable:
             raise SystemExit('cbcan_node is not on PATH (run through make bench)')
-        self._log = open(os.path.join(HERE, 'results', 'pdo_node.log'), 'w')
+        self._log = open(log_path, 'w')
         self.process = subprocess.Popen(
             [executable, '--ros-args', '-r', f'__ns:={self.name.rpartition("/")[0]}',
              '-p', 'can.interface:=udp_multicast', '-p', f'can.channel:={self.group}',
@@ -169,7 +168,7 @@ class UdpNode:
         self._log.close()
 
 
-def rows_in_own_process(seconds: float) -> Dict[str, Dict]:
+def rows_in_own_process(seconds: float, output: str) -> Dict[str, Dict]:
     """Rows 2-5 against the installed node on udp_multicast."""
     import rclpy
     from rclpy.experimental import EventsExecutor
@@ -178,7 +177,7 @@ def rows_in_own_process(seconds: float) -> Dict[str, Dict]:
     from cbcan_ros.ros.pdo import PDO_QOS
 
     node_ids = list(range(1, 9))
-    node = UdpNode(node_ids)
+    node = UdpNode(node_ids, os.path.join(output, 'pdo_node.log'))
     devices = _devices(node_ids, 'udp_multicast', node.group, {'port': node.port})
     client = rclpy.create_node(f'bench_pdo_{uuid.uuid4().hex[:8]}')
     latencies: List[float] = []
@@ -304,8 +303,10 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--quick', action='store_true', help='shorter measurements')
     parser.add_argument('--only', help='ignored (bench_sdo.py option)')
-    parser.add_argument('--output', default=os.path.join(HERE, 'results'))
+    parser.add_argument('--output', default=OUTPUT,
+                        help='folder of pdo.md, pdo.json and the node logs (default %(default)s)')
     args = parser.parse_args(argv)
+    logs_to(os.path.join(args.output, 'pdo_logs.txt'))
     seconds = 2.0 if args.quick else 5.0
     os.environ['ROS_DOMAIN_ID'] = os.environ.get('BENCH_ROS_DOMAIN_ID',
                                                  str(random.randint(101, 200)))
@@ -322,7 +323,7 @@ def main(argv=None) -> int:
     try:
         progress('PDO: 32 devices, 5,000 frames/s, one process')
         rows['published'] = row_published_none_lost(seconds)
-        rows.update(rows_in_own_process(seconds))
+        rows.update(rows_in_own_process(seconds, args.output))
     except KeyboardInterrupt:
         progress('interrupted')
     finally:

@@ -14,9 +14,9 @@ one after the other, each with its rows alternating call by call or round by rou
   receiver shows what receiving the frames alone costs.
 
 This script starts and stops every process, measures CPU and RSS from /proc, prints the
-table and writes ``bench/results/latest.md`` and ``latest.png``. It is a script, not a test:
-a target that is not met is reported, never fatal. Ctrl-C stops every child process and
-reports what was measured so far.
+table and writes ``latest.md`` and ``latest.png`` into ``bench/out/`` (``--output``). It is a
+script, not a test: a target that is not met is reported, never fatal. Ctrl-C stops every
+child process and reports what was measured so far.
 """
 
 import argparse
@@ -39,6 +39,7 @@ from bench_report import machine_info, write_report
 from bench_util import (
     BLOCK_DEVICE,
     MARK,
+    OUTPUT,
     proc_cpu_seconds,
     proc_rss_mb,
     proc_udp_drops,
@@ -341,7 +342,7 @@ def main(argv=None) -> int:
                         help='fewer calls and rounds (about a third of the time)')
     parser.add_argument('--only', choices=('virtual', 'udp_multicast'),
                         help='measure one column only')
-    parser.add_argument('--output', default=os.path.join(HERE, 'results'),
+    parser.add_argument('--output', default=OUTPUT,
                         help='folder of latest.md and latest.png (default %(default)s)')
     args = parser.parse_args(argv)
 

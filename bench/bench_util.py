@@ -17,6 +17,10 @@ EDS = os.path.join(ROOT, 'config', 'simulated_device.eds')
 
 MARK = '@@ '
 
+# Where a run writes its reports and the nodes' logs (ignored by git; `make bench` passes it
+# as --output). The results committed for comparison are in bench/reference/.
+OUTPUT = os.path.join(ROOT, 'bench', 'out')
+
 # The simulated devices (python-canopen LocalNodes from config/simulated_device.eds).
 LOCAL_DEVICES = tuple(range(1, 11))    # bursts spread over all ten: 60 calls each at most
 BATCH_DEVICES = {1: (1,), 3: (1, 2, 3), 8: tuple(range(1, 9))}
@@ -38,9 +42,25 @@ NMT_START = 1
 NMT_ENTER_PRE_OPERATIONAL = 128
 
 
+_terminal = None  # standard error as it was before logs_to()
+
+
 def progress(text: str) -> None:
     """Say on standard error what this process is doing."""
-    print(f'bench: {text}', file=sys.stderr, flush=True)
+    print(f'bench: {text}', file=_terminal or sys.stderr, flush=True)
+
+
+def logs_to(path: str) -> None:
+    """Send what this process prints on standard error (its nodes' logs) to ``path``.
+
+    Progress lines still reach the terminal, so the report stays free of node logs.
+    """
+    global _terminal
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    _terminal = os.fdopen(os.dup(2), 'w', buffering=1)
+    with open(path, 'w') as log:
+        os.dup2(log.fileno(), 2)
+    progress(f'node logs: {path}')
 
 
 def send(message: Dict) -> None:
