@@ -66,6 +66,20 @@ def me3can_multi_read(node_ids) -> list:
     return block
 
 
+CALL_MUX = 0x3000  # the burst's calls name their number in index and sub-index from here
+
+
+def call_mux(number: int) -> tuple:
+    """Return the (index, subindex) a burst call with ``number`` asks for."""
+    return CALL_MUX + (number >> 8), number & 0xFF
+
+
+def call_number(index_subindex: tuple) -> int:
+    """Return the number of the burst call that asked for (index, subindex)."""
+    index, subindex = index_subindex
+    return (index - CALL_MUX) << 8 | subindex
+
+
 def unanswered(calls) -> int:
     """Return how many of the rclpy futures have no answer."""
     return sum(not future.done() for future in calls)
@@ -271,17 +285,18 @@ def test_signal_during_a_burst_answers_every_call_taken_and_sends_no_write_twice
         calls = []
         for number in range(3000):
             node_id = SILENT[number % len(SILENT)]
+            index, subindex = call_mux(number)
             kind = number % 3
             if kind == 0:
                 calls.append(read.call_async(SdoRead.Request(
-                    node_id=node_id, index=0x1000, timeout=CALL_TIMEOUT)))
-            elif kind == 1:  # the call number in the data: each write is one frame's data
+                    node_id=node_id, index=index, subindex=subindex, timeout=CALL_TIMEOUT)))
+            elif kind == 1:  # the call number in the data too: each write is one frame's data
                 calls.append(write.call_async(SdoWrite.Request(
-                    node_id=node_id, index=0x2002, data=list(number.to_bytes(4, 'little')),
-                    timeout=CALL_TIMEOUT)))
+                    node_id=node_id, index=index, subindex=subindex,
+                    data=list(number.to_bytes(4, 'little')), timeout=CALL_TIMEOUT)))
             else:
                 calls.append(batch.call_async(SdoBatch.Request(accesses=[
-                    SdoAccess(node_id=node_id, index=0x1000),
+                    SdoAccess(node_id=node_id, index=index, subindex=subindex),
                     SdoAccess(node_id=node_id, index=0x2003, write=True,
                               data=list(number.to_bytes(4, 'little')))],
                     timeout=CALL_TIMEOUT)))
@@ -290,10 +305,11 @@ def test_signal_during_a_burst_answers_every_call_taken_and_sends_no_write_twice
                    'a third of the calls answered')
         signalled = stop_with(gateway, signal.SIGINT)
         sdo_requests = [(t, m) for t, m in recorder.frames if 0x600 < m.arbitration_id < 0x680]
-        on_the_bus = [int.from_bytes(m.data[4:8], 'little') for _, m in sdo_requests
-                      if m.data[0] & 0xE0 == 0x20 and mux(m) == (0x2002, 0)]
+        on_the_bus = [call_number(mux(m)) for _, m in sdo_requests
+                      if (m.data[0] == 0x40 or m.data[0] & 0xE0 == 0x20)
+                      and mux(m)[0] >= CALL_MUX]
         answered_within([calls[number] for number in on_the_bus], DELIVERY,
-                        'writes that were on the bus, after SIGINT', gateway)
+                        'calls whose requests were on the bus, after SIGINT', gateway)
         time.sleep(0.2)  # let frames still in flight reach the recorder
     finally:
         recorder.close()
@@ -301,7 +317,7 @@ def test_signal_during_a_burst_answers_every_call_taken_and_sends_no_write_twice
     assert 'calls answered while shutting down' in output, output[-3000:]
     assert 'never answered' not in output and 'could not be sent' not in output, \
         output[-3000:]
-    assert on_the_bus, 'no write reached the bus before the signal'
+    assert on_the_bus, 'no request reached the bus before the signal'
     for call in calls:
         if call.done():
             answer = call.result()
