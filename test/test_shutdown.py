@@ -1,6 +1,6 @@
 """Shutdown of the installed ``cbcan_node`` on SIGINT and SIGTERM, seen from outside.
 
-The promise of docs/services.md, Shutdown: every waiting and queued call is answered "the gateway is shutting
+docs/services.md, Shutdown: every waiting and queued call is answered "the gateway is shutting
 down", no request frame goes out after the signal (only the abort of a transfer that was
 running), the node exits with status 0 within ``SHUTDOWN_LIMIT`` and without a traceback, and
 a second signal ends it at once with status 128 + signal. Each test starts the node as a
