@@ -12,7 +12,8 @@ Each fenced block of every page is one of:
   (it refuses a name it does not declare), and the one naming node 5's EDS is given to that
   gateway; the diagnostic_aggregator configuration must name the status items the gateway
   publishes;
-- listed in ``NOT_RUN`` with the reason it cannot run here.
+- listed in ``NOT_RUN`` with the reason it cannot run here (the PDO worked example for a
+  drive also runs with the objects of ``make run``'s node 5 in the drive's place).
 A block that is none of these fails the test, so a new block is run or listed. Every Python
 block, run or not, is complete as printed: ruff finds no undefined name in it. Every relative
 link of the pages leads to a file that exists (and to a heading of it, when it names one), and
@@ -24,6 +25,7 @@ import pathlib
 import re
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -87,8 +89,9 @@ NOT_RUN = {
                                            'the same PDO and SYNC flow against durand)',
     'cbcan_cli pdo-write 5 1 Controlword=15': 'a CiA 402 drive as node 5 (test_pdo_cli runs '
                                               'pdo-echo and pdo-write against durand)',
-    'def on_drive(message):': 'a fragment for a node of your own talking to a CiA 402 drive '
-                              '(test_pdo_process subscribes and publishes the same way)',
+    'def on_drive(message):': 'a CiA 402 drive as node 5: '
+                              'test_pdo_worked_example_runs_with_the_simulated_objects runs it '
+                              "with the objects of make run's node 5 in the drive's place",
     'LssScan request:': 'a summary of srv_defs/srv/LssScan.srv, LssConfigure.srv and '
                         'LssInquire.srv',
 }
@@ -383,3 +386,36 @@ def test_diagnostic_aggregator_example_names_what_the_gateway_publishes(gateway,
             return all(name in names for name in expected)
     wait_until(published, START_TIMEOUT, f'{expected} on /diagnostics (seen {names}); '
                                          f'cbcan_node output:\n{gateway[0].output()}')
+
+
+# The PDO worked example's drive objects, and the objects of make run's simulated node 5 that
+# take their place: TPDO 1 maps 0x2001 and 0x2003, RPDO 1 0x2000 and 0x2001.
+DRIVE_OBJECTS = {'0x6041': '0x2001', '0x6064': '0x2003', '0x6040': '0x2000', '0x607A': '0x2001',
+                 'value=20000.0': 'value=300.0'}
+
+
+def test_pdo_worked_example_runs_with_the_simulated_objects(gateway, cli_client, tmp_path):
+    """The example receives TPDO 1, sends RPDO 1 (seen back in TPDO 1) and stops on Ctrl-C."""
+    blocks = [block for block in all_blocks() if 'def on_drive(message):' in block.text]
+    assert len(blocks) == 1, [str(block) for block in blocks]
+    text = blocks[0].text
+    for drive, simulated in DRIVE_OBJECTS.items():
+        assert drive in text, f'{blocks[0]}: no {drive}'
+        text = text.replace(drive, simulated)
+    assert run(cli_client, build_parser().parse_args(['nmt', '5', 'start'])) == 0
+    script = tmp_path / 'pdo_example.py'
+    script.write_text(text)
+    process = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True, cwd=tmp_path)
+    printed: List[str] = []
+    reader = threading.Thread(target=lambda: printed.extend(process.stdout), daemon=True)
+    reader.start()
+    try:
+        # 0x2001, written 300 through RPDO 1, comes back in TPDO 1 as the "statusword".
+        wait_until(lambda: any('statusword 0x012C, position -2' in line for line in printed),
+                   SCRIPT_TIMEOUT, f'{blocks[0]} to print the value it sent; printed: {printed}')
+        process.send_signal(signal.SIGINT)
+        assert process.wait(SCRIPT_TIMEOUT) == 0, ''.join(printed)
+    finally:
+        process.kill()
+        reader.join(SCRIPT_TIMEOUT)
