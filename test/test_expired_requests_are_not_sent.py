@@ -1,6 +1,6 @@
 """A request whose time ran out while it waited for its device is answered, never sent.
 
-The README: "timed out while waiting behind other requests to the same device: 0x05040000
+docs/services.md: "timed out while waiting behind other requests to the same device: 0x05040000
 ... nothing was sent". Queued requests are timed out by one deadline thread, and that thread
 also delivers their answers: the ROS layer sends each answer to its caller from the thread
 that resolves it (``ros/deferred.py``, one send lock per service). When that thread is slow to

@@ -1,7 +1,7 @@
 """Commissioning through the installed ``cbcan_node`` and ``cbcan_cli``, each a process.
 
 Three new durand devices (LSS slaves without a node id) run in this test process on the
-node's udp_multicast bus; the integrator's steps are run as written in the README.
+node's udp_multicast bus; the integrator's steps are run as written in docs/commissioning.md.
 """
 
 import subprocess

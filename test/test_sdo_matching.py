@@ -255,7 +255,7 @@ def test_late_read_answer_before_the_next_request_is_not_its_answer(gateway, mak
         rogue.send(upload_answer(*stale_object, STALE))  # on the bus before the next request
         # Received before the request, not only sent: a frame the receive thread has not yet
         # taken from the driver (here the virtual bus's queue; in a USB adapter the same)
-        # when the request goes out cannot be told apart by order (a limit in the README).
+        # when the request goes out cannot be told apart by order (docs/library_gaps.md).
         driver = gateway.node.gateway.bus._bus
         wait_until(driver.queue.empty, 5.0, "the stale answer taken from the gateway's bus")
         second = gateway.call('sdo_read', node_id=ROGUE, index=0x2002, subindex=0,

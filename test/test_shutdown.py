@@ -1,6 +1,6 @@
 """Shutdown of the installed ``cbcan_node`` on SIGINT and SIGTERM, seen from outside.
 
-The node's duty (the services docs' promise): every call it has taken is answered ("the
+The node's duty (docs/services.md, Shutdown): every call it has taken is answered ("the
 gateway is shutting down" for those still waiting) and handed to ROS before it goes, its
 services stay ``ANSWER_LINGER`` seconds after the last answers so they can reach their
 callers, no request frame goes out after the signal (only the abort of a transfer that was

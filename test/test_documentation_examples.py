@@ -1,6 +1,6 @@
-"""Every code block of README.md that can run here runs, as printed; the others say why not.
+"""Every code block of README.md and docs/ that can run here runs as printed; the others say why.
 
-Each fenced block is one of:
+Each fenced block of every page is one of:
 - ``python``: run as a script in its own process against the gateway ``make run`` starts;
   every ``# -> TEXT`` comment is a line the script must print, in that order (``# e.g.``
   comments show output that varies);
@@ -12,14 +12,20 @@ Each fenced block is one of:
   (it refuses a name it does not declare), and the one naming node 5's EDS is given to that
   gateway; the diagnostic_aggregator configuration must name the status items the gateway
   publishes;
-- listed in ``NOT_RUN`` with the reason it cannot run here.
-A block that is none of these fails the test, so a new block is run or listed.
+- listed in ``NOT_RUN`` with the reason it cannot run here (the PDO worked example for a
+  drive also runs with the objects of ``make run``'s node 5 in the drive's place).
+A block that is none of these fails the test, so a new block is run or listed. Every Python
+block, run or not, is complete as printed: ruff finds no undefined name in it. Every relative
+link of the pages leads to a file that exists (and to a heading of it, when it names one), and
+the README links every page of docs/.
 """
 
 from dataclasses import dataclass
 import pathlib
 import re
 import shlex
+import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -39,14 +45,17 @@ from conftest import wait_until
 from node_process import EDS, NodeProcess, ROOT, START_TIMEOUT
 
 # One worker runs the module, so its gateway starts once.
-pytestmark = pytest.mark.xdist_group('readme')
+pytestmark = pytest.mark.xdist_group('documentation')
 
 README = ROOT / 'README.md'
+DOCS = ROOT / 'docs'
+# Every page whose code blocks are run or listed: the front page and every page of docs/.
+PAGES = [README, *sorted(DOCS.glob('*.md'))]
 # What the aggregator example names the gateway's status items after.
 AGGREGATOR_GATEWAY = '/can0/cbcan'
-# The EDS path the README's parameter example gives; the test puts a copy of
-# config/simulated_device.eds at a path of its own and reads the README with that path.
-README_EDS = '/home/robot/eds/drive_5.eds'
+# The EDS path the parameter example of the command line page gives; the test puts a copy of
+# config/simulated_device.eds at a path of its own and reads the page with that path.
+DOCUMENTED_EDS = '/home/robot/eds/drive_5.eds'
 SCRIPT_TIMEOUT = 120.0
 
 # A piece of the block that names it: why it does not run here.
@@ -80,8 +89,9 @@ NOT_RUN = {
                                            'the same PDO and SYNC flow against durand)',
     'cbcan_cli pdo-write 5 1 Controlword=15': 'a CiA 402 drive as node 5 (test_pdo_cli runs '
                                               'pdo-echo and pdo-write against durand)',
-    'def on_drive(message):': 'a fragment for a node of your own talking to a CiA 402 drive '
-                              '(test_pdo_process subscribes and publishes the same way)',
+    'def on_drive(message):': 'a CiA 402 drive as node 5: '
+                              'test_pdo_worked_example_runs_with_the_simulated_objects runs it '
+                              "with the objects of make run's node 5 in the drive's place",
     'LssScan request:': 'a summary of srv_defs/srv/LssScan.srv, LssConfigure.srv and '
                         'LssInquire.srv',
 }
@@ -94,26 +104,38 @@ NOT_RUN_COMMANDS = {
 
 @dataclass
 class Block:
-    """One fenced code block of the README."""
+    """One fenced code block of a page."""
 
+    page: str
     line: int
     language: str
     text: str
 
     def __str__(self) -> str:
         first = self.text.strip().splitlines()[0] if self.text.strip() else ''
-        return f'README.md line {self.line} ({self.language or "no language"}): {first[:70]}'
+        return f'{self.page} line {self.line} ({self.language or "no language"}): {first[:70]}'
+
+    @property
+    def name(self) -> str:
+        """Return a short name of the block for test ids and file names."""
+        return f'{pathlib.Path(self.page).stem}-line{self.line}'
 
 
-def readme_blocks() -> List[Block]:
-    """Return every fenced code block of the README, indented ones too."""
-    text = README.read_text()
+def page_blocks(page: pathlib.Path) -> List[Block]:
+    """Return every fenced code block of one page, indented ones too."""
+    text = page.read_text(encoding='utf-8')
     blocks = []
     for match in re.finditer(r'^( *)```(\w*)\n(.*?)^\1```$', text, re.S | re.M):
         indent = len(match.group(1))
         body = '\n'.join(line[indent:] for line in match.group(3).splitlines())
-        blocks.append(Block(text.count('\n', 0, match.start()) + 1, match.group(2), body))
+        blocks.append(Block(str(page.relative_to(ROOT)), text.count('\n', 0, match.start()) + 1,
+                            match.group(2), body))
     return blocks
+
+
+def all_blocks() -> List[Block]:
+    """Return every fenced code block of every page, page by page."""
+    return [block for page in PAGES for block in page_blocks(page)]
 
 
 def session(block: Block) -> List[Tuple[str, List[str]]]:
@@ -166,12 +188,12 @@ def kind(block: Block) -> str:
 
 
 def blocks_of(wanted: str) -> List[Block]:
-    return [block for block in readme_blocks() if kind(block) == wanted]
+    return [block for block in all_blocks() if kind(block) == wanted]
 
 
 def test_every_block_is_run_or_listed_with_a_reason():
-    blocks = readme_blocks()
-    assert len(blocks) > 10, 'the README has fewer code blocks than expected: parsing broke'
+    blocks = all_blocks()
+    assert len(blocks) > 30, 'the pages have fewer code blocks than expected: parsing broke'
     kinds = [kind(block) for block in blocks]
     unclassified = [str(block) for block, taken in zip(blocks, kinds, strict=True)
                     if taken == 'unclassified']
@@ -181,6 +203,57 @@ def test_every_block_is_run_or_listed_with_a_reason():
         named = [str(block) for block in blocks if piece in block.text]
         assert len(named) == 1, f'NOT_RUN entry {piece!r} names {len(named)} blocks: {named}'
     assert {'python', 'cli', 'parameters', 'aggregator'} <= set(kinds), kinds
+
+
+def test_every_page_has_code_blocks_and_the_readme_links_every_page():
+    linked = {target for _text, target in links(README)}
+    unlinked = [page.name for page in DOCS.glob('*.md') if f'docs/{page.name}' not in linked]
+    assert not unlinked, f'README.md links no {unlinked}'
+    assert [page for page in PAGES if page_blocks(page)], 'no page has a code block'
+
+
+def anchor(heading: str) -> str:
+    """Return the anchor GitHub gives a heading: lower case, punctuation dropped, - for spaces."""
+    return re.sub(r'[^\w\- ]', '', heading.strip().lower()).replace(' ', '-')
+
+
+def anchors(page: pathlib.Path) -> List[str]:
+    """Return the anchors of every heading of a page, code blocks left out."""
+    text = re.sub(r'^( *)```.*?^\1```$', '', page.read_text(encoding='utf-8'), flags=re.S | re.M)
+    return [anchor(heading) for heading in re.findall(r'^#+ (.*)$', text, re.M)]
+
+
+def links(page: pathlib.Path) -> List[Tuple[str, str]]:
+    """Return every link of a page outside code blocks: (its text, its target)."""
+    text = re.sub(r'^( *)```.*?^\1```$', '', page.read_text(encoding='utf-8'), flags=re.S | re.M)
+    return re.findall(r'\[([^\]]*)\]\(([^)\s]+)\)', text)
+
+
+@pytest.mark.parametrize('page', PAGES, ids=lambda page: page.name)
+def test_relative_links_lead_to_a_file_and_heading(page):
+    broken = []
+    for text, target in links(page):
+        if re.match(r'[a-z]+:', target):
+            continue  # a web address
+        path, _, fragment = target.partition('#')
+        file = (page.parent / path).resolve() if path else page
+        if not file.exists():
+            broken.append(f'[{text}]({target}): no file {file}')
+        elif fragment and (file.suffix != '.md' or fragment not in anchors(file)):
+            broken.append(f'[{text}]({target}): no heading #{fragment} in {file.name}')
+    assert not broken, f'{page.name}: {broken}'
+
+
+@pytest.mark.parametrize('block', [block for block in all_blocks()
+                                   if block.language == 'python'], ids=lambda block: block.name)
+def test_python_blocks_are_complete_as_printed(block):
+    """Run or not, a Python block imports or defines every name it uses, and nothing unused."""
+    ruff = shutil.which('ruff')
+    assert ruff, 'ruff is not installed (make venv installs it)'
+    checked = subprocess.run([ruff, 'check', '--no-cache', '--isolated', '--select', 'F',
+                              '--stdin-filename', 'example.py', '-'], input=block.text,
+                             capture_output=True, text=True)
+    assert checked.returncode == 0, f'{block}\n{checked.stdout}{checked.stderr}'
 
 
 def make_run_arguments() -> List[str]:
@@ -196,12 +269,12 @@ def parameter_file(block: Block, folder: pathlib.Path) -> pathlib.Path:
     """Write a parameter block to a file, with a copy of the simulated EDS as node 5's EDS."""
     eds = folder / 'drive_5.eds'
     eds.write_text(pathlib.Path(EDS).read_text())
-    path = folder / f'parameters_{block.line}.yaml'
-    path.write_text(block.text.replace(README_EDS, str(eds)))
+    path = folder / f'parameters_{block.name}.yaml'
+    path.write_text(block.text.replace(DOCUMENTED_EDS, str(eds)))
     return path
 
 
-@pytest.mark.parametrize('block', blocks_of('parameters'), ids=lambda block: f'line{block.line}')
+@pytest.mark.parametrize('block', blocks_of('parameters'), ids=lambda block: block.name)
 def test_parameter_examples_are_taken_by_the_gateway(block, tmp_path):
     node = Node('cbcan', cli_args=['--ros-args', '-r', '__ns:=/can0', '--params-file',
                                    str(parameter_file(block, tmp_path))],
@@ -216,13 +289,13 @@ def test_parameter_examples_are_taken_by_the_gateway(block, tmp_path):
 
 @pytest.fixture(scope='module')
 def gateway(tmp_path_factory):
-    """Start the gateway as ``make run`` does, with the README's parameter file on top.
+    """Start the gateway as ``make run`` does, with the documented parameter file on top.
 
     That file names node 5's EDS by a path of this machine: a copy of the simulated device's.
     Yields the process and the path of the EDS copy.
     """
-    folder = tmp_path_factory.mktemp('readme')
-    named = [block for block in blocks_of('parameters') if README_EDS in block.text]
+    folder = tmp_path_factory.mktemp('documentation')
+    named = [block for block in blocks_of('parameters') if DOCUMENTED_EDS in block.text]
     assert len(named) == 1, [str(block) for block in named]
     parameters = parameter_file(named[0], folder)
     process = NodeProcess([*make_run_arguments(), '--params-file', str(parameters)])
@@ -253,7 +326,7 @@ def expected_lines(script: str) -> List[str]:
             if '# -> ' in line]
 
 
-@pytest.mark.parametrize('block', blocks_of('python'), ids=lambda block: f'line{block.line}')
+@pytest.mark.parametrize('block', blocks_of('python'), ids=lambda block: block.name)
 def test_python_examples_run_as_printed(gateway, cli_client, block, tmp_path):
     script = tmp_path / 'example.py'
     script.write_text(block.text)
@@ -282,12 +355,12 @@ def test_cli_examples_run_as_printed(gateway, cli_client, capsys, monkeypatch):
             said = (f'{block}\n$ {command}\nstatus {status}\nstdout:\n{out}stderr:\n{err}'
                     f'cbcan_node output:\n{gateway[0].output()}')
             if shown:
-                expected = [line.replace(README_EDS, gateway[1]) for line in shown]
+                expected = [line.replace(DOCUMENTED_EDS, gateway[1]) for line in shown]
                 assert (out + err).splitlines() == expected, said
             else:
                 assert status == 0, said
             ran += 1
-    assert ran >= 10, f'only {ran} cbcan_cli commands found in the README'
+    assert ran >= 10, f'only {ran} cbcan_cli commands found in the pages'
 
 
 def test_diagnostic_aggregator_example_names_what_the_gateway_publishes(gateway, cli_client,
@@ -313,3 +386,36 @@ def test_diagnostic_aggregator_example_names_what_the_gateway_publishes(gateway,
             return all(name in names for name in expected)
     wait_until(published, START_TIMEOUT, f'{expected} on /diagnostics (seen {names}); '
                                          f'cbcan_node output:\n{gateway[0].output()}')
+
+
+# The PDO worked example's drive objects, and the objects of make run's simulated node 5 that
+# take their place: TPDO 1 maps 0x2001 and 0x2003, RPDO 1 0x2000 and 0x2001.
+DRIVE_OBJECTS = {'0x6041': '0x2001', '0x6064': '0x2003', '0x6040': '0x2000', '0x607A': '0x2001',
+                 'value=20000.0': 'value=300.0'}
+
+
+def test_pdo_worked_example_runs_with_the_simulated_objects(gateway, cli_client, tmp_path):
+    """The example receives TPDO 1, sends RPDO 1 (seen back in TPDO 1) and stops on Ctrl-C."""
+    blocks = [block for block in all_blocks() if 'def on_drive(message):' in block.text]
+    assert len(blocks) == 1, [str(block) for block in blocks]
+    text = blocks[0].text
+    for drive, simulated in DRIVE_OBJECTS.items():
+        assert drive in text, f'{blocks[0]}: no {drive}'
+        text = text.replace(drive, simulated)
+    assert run(cli_client, build_parser().parse_args(['nmt', '5', 'start'])) == 0
+    script = tmp_path / 'pdo_example.py'
+    script.write_text(text)
+    process = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True, cwd=tmp_path)
+    printed: List[str] = []
+    reader = threading.Thread(target=lambda: printed.extend(process.stdout), daemon=True)
+    reader.start()
+    try:
+        # 0x2001, written 300 through RPDO 1, comes back in TPDO 1 as the "statusword".
+        wait_until(lambda: any('statusword 0x012C, position -2' in line for line in printed),
+                   SCRIPT_TIMEOUT, f'{blocks[0]} to print the value it sent; printed: {printed}')
+        process.send_signal(signal.SIGINT)
+        assert process.wait(SCRIPT_TIMEOUT) == 0, ''.join(printed)
+    finally:
+        process.kill()
+        reader.join(SCRIPT_TIMEOUT)
