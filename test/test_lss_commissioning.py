@@ -25,6 +25,17 @@ ALL_WAITING = bytes([0x04, 0x00])
 RESET_COMMUNICATION = 130
 # A scan's own bound is its timeout; these only keep a broken test from hanging.
 ANSWER = 60.0
+# How long a probe waits for the durand devices' answers. The default on a bus without a wire
+# (40 ms) was too short on a loaded machine for a device stack in Python: its answers came
+# late, and the scan started again until it gave up as "disturbed".
+PROBE_WAIT = 0.15
+
+
+@pytest.fixture
+def make_gateway(make_gateway):
+    """The harness's gateways, with a probe wait a loaded machine's devices can keep."""
+    return lambda **parameters: make_gateway(**{'lss__probe_timeout': PROBE_WAIT,
+                                                **parameters})
 
 
 def identity(serial: int) -> LssIdentity:

@@ -34,7 +34,10 @@ def commissioning(start_node, client_node):
     process = start_node(['-r', f'__ns:={namespace}',
                           '-p', 'can.interface:=udp_multicast',
                           '-p', f'can.channel:={group}',
-                          '-p', 'nodes:=[10]'], port)
+                          '-p', 'nodes:=[10]',
+                          # The default 40 ms on a bus without a wire was too short for
+                          # these devices' answers on a loaded machine.
+                          '-p', 'lss.probe_timeout:=0.15'], port)
     yield f'{namespace}/cbcan', devices, process
     for device in devices:
         device.stop()

@@ -162,7 +162,10 @@ def test_device_saying_yes_to_every_probe_does_not_make_up_a_device(make_gateway
     The identity read back from the device in the configuration state (none is) shows it
     is made up.
     """
-    gateway = make_gateway(lss__probe_timeout=0.01)  # every probe is answered: keep it short
+    # After the first disturbance each scan waits the whole probe time for every answer (3
+    # scans of 132 probes), so the wait stays short; but 10 ms was too short for this
+    # thread's answers on a loaded machine (the scan found nothing instead).
+    gateway = make_gateway(lss__probe_timeout=0.03)
     listener = gateway.raw_bus()
     stop = threading.Event()
     responder = threading.Thread(target=answer_requests,
