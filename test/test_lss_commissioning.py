@@ -33,7 +33,7 @@ PROBE_WAIT = 0.15
 
 @pytest.fixture
 def make_gateway(make_gateway):
-    """The harness's gateways, with a probe wait a loaded machine's devices can keep."""
+    """Return the harness's gateway factory, with a probe wait loaded devices can keep."""
     return lambda **parameters: make_gateway(**{'lss__probe_timeout': PROBE_WAIT,
                                                 **parameters})
 
