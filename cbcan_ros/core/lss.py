@@ -28,7 +28,8 @@ from typing import Callable, Iterable, List, Optional, Set, Tuple
 from canopen import lss as cia305
 
 from .bus import BusDown, prompt
-from .sdo import answer, Deadlines, JobQueue, MAX_NODE_ID, resolved
+from .request_queue import answer, Deadlines, JobQueue, resolved
+from .sdo import MAX_NODE_ID
 
 LOGGER = logging.getLogger(__name__)
 

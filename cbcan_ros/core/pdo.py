@@ -36,7 +36,8 @@ from canopen.objectdictionary import datatypes, ObjectDictionary
 from . import abort_codes
 from .bus import BusDown, BusStatus, prompt
 from .nmt import BOOT_UP, HEARTBEAT_COB_BASE
-from .sdo import Access, answer, resolved, SdoResult
+from .request_queue import answer, resolved
+from .sdo import Access, SdoResult
 
 LOGGER = logging.getLogger(__name__)
 
