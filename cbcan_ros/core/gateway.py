@@ -16,10 +16,12 @@ import can
 import canopen
 from canopen import objectdictionary as od
 
-from . import abort_codes, eds, lss, nmt
+from . import abort_codes, eds, nmt
 from .bus import BusDown, BusStatus, BusSupervisor
 from .canopen_gaps import StrictSdoClient, without_heartbeat_producer
 from .emcy import EmcyMonitor
+from .lss_frames import is_all_waiting, probe_wait
+from .lss_master import LssMaster
 from .pdo import PdoService
 from .request_queue import Deadlines, resolved
 from .sdo import Access, batch_refusal, check_node_id, one_each, refusal, SdoResult
@@ -79,7 +81,7 @@ def _closes_a_running_operation(message: can.Message) -> bool:
     switch of every device back to waiting.
     """
     sdo_abort = 0x600 <= message.arbitration_id <= 0x67F and message.data[:1] == b'\x80'
-    return sdo_abort or lss.is_all_waiting(message)
+    return sdo_abort or is_all_waiting(message)
 
 
 def _variable(name, index, subindex, data_type, access, default):
@@ -146,9 +148,9 @@ class Gateway:
                                in config.device_files.items() if node_id in config.pdo_nodes},
                               config.pdo_configure)
         self._deadlines = Deadlines()
-        self.lss = lss.LssMaster(
+        self.lss = LssMaster(
             self.network, self._deadlines,
-            lss.probe_wait(config.interface, config.bitrate, config.lss_probe_timeout),
+            probe_wait(config.interface, config.bitrate, config.lss_probe_timeout),
             used_ids=lambda: {s.node_id for s in self.monitor.statuses()}.union(
                 config.guarded_nodes),
             detected=lambda node_id: self.monitor.status(node_id).detected,
