@@ -12,7 +12,8 @@ import re
 import pytest
 
 from cbcan_ros.core import abort_codes, nmt
-from cbcan_ros.core.sdo import resolved, SdoResult
+from cbcan_ros.core.request_queue import resolved
+from cbcan_ros.core.sdo import SdoResult
 from cbcan_ros.plc import mailbox
 from cbcan_ros.plc.mailbox import Cbcan, Mailbox, Me3can
 

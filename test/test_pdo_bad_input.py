@@ -18,7 +18,8 @@ from hypothesis import given, HealthCheck, settings
 from hypothesis import strategies as st
 import pytest
 
-from cbcan_ros.core.pdo import decode, EntryValue, MAX_BITS, parse_mapping, PdoService, ReceivedPdo
+from cbcan_ros.core.pdo import PdoService
+from cbcan_ros.core.pdo_mapping import decode, EntryValue, MAX_BITS, parse_mapping, ReceivedPdo
 from cbcan_ros.core.write_protection import WriteProtection
 from cbcan_ros.msg import Pdo, PdoEntry
 from cbcan_ros.ros.pdo import pdo_message, PDO_QOS

@@ -16,24 +16,17 @@ import can
 import canopen
 from canopen import objectdictionary as od
 
-from . import abort_codes, eds, lss, nmt
+from . import abort_codes, eds, nmt
 from .bus import BusDown, BusStatus, BusSupervisor
 from .canopen_gaps import StrictSdoClient, without_heartbeat_producer
 from .emcy import EmcyMonitor
+from .lss_frames import is_all_waiting, probe_wait
+from .lss_master import LssMaster
 from .pdo import PdoService
-from .sdo import (
-    Access,
-    check_node_id,
-    check_size,
-    check_timeout,
-    Deadlines,
-    one_each,
-    resolved,
-    run_guarded,
-    SdoChannel,
-    SdoResult,
-    SdoStatistics,
-)
+from .request_queue import Deadlines, resolved
+from .sdo import Access, batch_refusal, check_node_id, one_each, refusal, SdoResult
+from .sdo_channel import SdoChannel, SdoStatistics
+from .sdo_transfer import run_local
 from .sync import SyncProducer
 from .write_protection import WriteProtection
 
@@ -46,11 +39,6 @@ VERSION = '0.1.0'
 NOTIFIER_CYCLE = 0.05
 
 SHUTTING_DOWN = 'the gateway is shutting down'
-
-# The largest batch: enough for a full sweep of a device's objects, small enough that one
-# answer stays a reasonable message (8 bytes and a short text a result).
-MAX_BATCH = 1024
-
 
 @dataclass(frozen=True)
 class GatewayConfig:
@@ -93,7 +81,7 @@ def _closes_a_running_operation(message: can.Message) -> bool:
     switch of every device back to waiting.
     """
     sdo_abort = 0x600 <= message.arbitration_id <= 0x67F and message.data[:1] == b'\x80'
-    return sdo_abort or lss.is_all_waiting(message)
+    return sdo_abort or is_all_waiting(message)
 
 
 def _variable(name, index, subindex, data_type, access, default):
@@ -160,9 +148,9 @@ class Gateway:
                                in config.device_files.items() if node_id in config.pdo_nodes},
                               config.pdo_configure)
         self._deadlines = Deadlines()
-        self.lss = lss.LssMaster(
+        self.lss = LssMaster(
             self.network, self._deadlines,
-            lss.probe_wait(config.interface, config.bitrate, config.lss_probe_timeout),
+            probe_wait(config.interface, config.bitrate, config.lss_probe_timeout),
             used_ids=lambda: {s.node_id for s in self.monitor.statuses()}.union(
                 config.guarded_nodes),
             detected=lambda node_id: self.monitor.status(node_id).detected,
@@ -233,22 +221,19 @@ class Gateway:
         """Run ``accesses``: in order per device, devices in parallel; one result each.
 
         The timeout bounds the whole batch. Each device's part waits in that device's queue
-        as one request. A batch of more than ``MAX_BATCH`` accesses is refused whole.
+        as one request. A batch of more than ``sdo.MAX_BATCH`` accesses is refused whole.
         """
-        problem = check_timeout(timeout)
-        if problem is None and len(accesses) > MAX_BATCH:
-            problem = (f'the batch has {len(accesses)} accesses: at most {MAX_BATCH} are '
-                       f'allowed; nothing was sent')
-        if problem:
-            return resolved(one_each(SdoResult.failed(problem), len(accesses)))
+        refused = batch_refusal(accesses, timeout)
+        if refused is not None:
+            return resolved(one_each(refused, len(accesses)))
         results: List[Optional[SdoResult]] = [None] * len(accesses)
         per_device: Dict[int, List[int]] = {}
         for position, access in enumerate(accesses):
-            refusal = self._refusal(access)
-            if refusal is not None:
-                results[position] = refusal
+            refused = refusal(access, timeout, self.config.write_protection)
+            if refused is not None:
+                results[position] = refused
             elif access.node_id == 0:
-                results[position] = self._own(access)
+                results[position] = run_local(self.dictionary, access)
             else:
                 per_device.setdefault(access.node_id, []).append(position)
         done: Future = Future()
@@ -319,35 +304,13 @@ class Gateway:
         self.pdo.on_bus_change(status)
 
     def _single(self, access: Access, timeout: float) -> 'Future[SdoResult]':
-        problem = check_timeout(timeout)
-        refusal = self._refusal(access) or (SdoResult.failed(problem) if problem else None)
-        if refusal is not None:
-            return resolved(refusal)
+        refused = refusal(access, timeout, self.config.write_protection)
+        if refused is not None:
+            return resolved(refused)
         if access.node_id == 0:
-            return resolved(self._own(access))
+            return resolved(run_local(self.dictionary, access))
         return self._channel_for(access.node_id, None, lambda channel: channel.single(
             access, timeout or self.config.sdo_timeout))
-
-    def _refusal(self, access: Access) -> Optional[SdoResult]:
-        problem = access.problem()
-        if problem:
-            return SdoResult.failed(problem)
-        if access.write:
-            refusal = self.config.write_protection.refuses_write(access.node_id, access.index)
-            if refusal:
-                return SdoResult.aborted(abort_codes.LOCAL_CONTROL, refusal)
-        return None
-
-    def _own(self, access: Access) -> SdoResult:
-        if access.write:
-            return run_guarded(lambda: self.dictionary.set_data(
-                access.index, access.subindex, access.data, check_writable=True))
-
-        def read() -> bytes:
-            data = self.dictionary.get_data(access.index, access.subindex, check_readable=True)
-            check_size(len(data), access.max_size)
-            return data
-        return run_guarded(read)
 
     def _channel_for(self, node_id: int, count: Optional[int], request) -> Future:
         """Hand a request to the device's channel; ``count`` accesses (None: one)."""

@@ -25,7 +25,7 @@ from ..core.emcy import EmcyStatus, Emergency
 from ..core.gateway import Gateway
 from ..core.nmt import NodeStatus
 from ..core.pdo import PdoStatistics
-from ..core.sdo import SdoStatistics
+from ..core.sdo_channel import SdoStatistics
 from ..core.sync import SyncStatus
 
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,

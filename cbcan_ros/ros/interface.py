@@ -25,7 +25,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from ..core.gateway import Gateway, SHUTTING_DOWN
 from ..core.lss import Identity, LssResult
 from ..core.nmt import state_name
-from ..core.sdo import Access, check_node_id, resolved, SdoResult
+from ..core.request_queue import resolved
+from ..core.sdo import Access, check_node_id, SdoResult
 from ..msg import LssIdentity, NodeState, NodeStates
 from ..msg import SdoResult as SdoResultMessage
 from ..plc.mailbox import Mailbox
