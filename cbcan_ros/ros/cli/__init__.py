@@ -35,7 +35,8 @@ import argparse
 import sys
 from typing import Optional, Sequence
 
-from ..client import DEFAULT_GATEWAY, DEFAULT_WAIT, GatewayUnavailable, RequestFailed
+from ..client import DEFAULT_GATEWAY, DEFAULT_WAIT, RequestFailed
+from ..service_caller import GatewayUnavailable
 from . import lss, mailbox, nmt, pdo, sdo
 from .arguments import positive_seconds
 from .errors import print_refusal, UsageError

@@ -8,7 +8,7 @@ from ...core.sdo import MAX_NODE_ID
 from ...core.text import quoted
 from ...msg import LssIdentity
 from ...srv import LssConfigure, LssInquire, LssScan
-from ..client import ANSWER_MARGIN
+from ..service_caller import ANSWER_MARGIN
 from .arguments import ranged, seconds
 from .standalone_client import Client
 
