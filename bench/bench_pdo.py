@@ -313,7 +313,7 @@ def main(argv=None) -> int:
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     import rclpy
 
-    from cbcan_ros.simulation.durand_device import PdoConfig
+    from cbcan_ros.simulation.durand_pdos import PdoConfig
     global PDOS
     PDOS = (PdoConfig('tpdo', 1, ((0x2002, 0), (0x2003, 0)), 255),
             PdoConfig('tpdo', 2, ((0x2002, 0), (0x2003, 0)), 255),

@@ -23,7 +23,8 @@ from cbcan_ros.core.pdo_mapping import decode, EntryValue, MAX_BITS, parse_mappi
 from cbcan_ros.core.write_protection import WriteProtection
 from cbcan_ros.msg import Pdo, PdoEntry
 from cbcan_ros.ros.pdo import pdo_message, PDO_QOS
-from cbcan_ros.simulation.durand_device import DurandDevice, PdoConfig
+from cbcan_ros.simulation.durand_device import DurandDevice
+from cbcan_ros.simulation.durand_pdos import PdoConfig
 
 from conftest import new_channel, wait_for_future, wait_until
 from node_process import EDS

@@ -6,12 +6,12 @@
     gateway.read(5, 0x1000, type='u32')                       # blocking: in scripts
     value = await gateway.read_async(5, 0x1000, type='u32')   # in an async callback
 
-Every call goes through a node of the client's own, spun by a thread of its own, so a
-blocking call works whether or not ``node`` is spun by an executor, and also inside one of
-``node``'s callbacks. The awaitable forms resume on ``node``'s executor (a
-``SingleThreadedExecutor`` or ``MultiThreadedExecutor``; rclpy's ``EventsExecutor`` does not
-run ``async`` callbacks). The services are called with the gateway's own ``SERVICE_QOS``:
-ROS's default depth of 10 loses answers of a burst of calls.
+Every call goes through a node of the client's own, spun by a thread of its own
+(``service_caller``), so a blocking call works whether or not ``node`` is spun by an
+executor, and also inside one of ``node``'s callbacks. The awaitable forms resume on
+``node``'s executor (a ``SingleThreadedExecutor`` or ``MultiThreadedExecutor``; rclpy's
+``EventsExecutor`` does not run ``async`` callbacks). The services are called with the
+gateway's own ``SERVICE_QOS``: ROS's default depth of 10 loses answers of a burst of calls.
 
 Errors: when the gateway answers ``success: false`` the call raises :class:`RequestFailed`
 (its ``abort_code``, ``message`` and the whole ``response``); when no gateway answers, or not
@@ -19,32 +19,27 @@ in time, :class:`GatewayUnavailable`. A value that does not fit its type raises 
 :meth:`GatewayClient.batch` raises neither for a failed access: it answers every access.
 """
 
-from concurrent.futures import Future as ThreadFuture
 from dataclasses import dataclass
-import functools
-import threading
-import time
 from typing import NamedTuple, Optional, Sequence, Union
-import uuid
 
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.task import Future as RosFuture
 
 from ..core.sdo import MAX_TIMEOUT
 from ..core.values import check_type, decode_value, encode, Value
 from ..msg import NodeStates, SdoAccess
 from ..srv import NmtCommand, NmtState, SdoBatch, SdoRead, SdoWrite
-from .interface import NODE_STATES_QOS, SERVICE_QOS
+from .interface import NODE_STATES_QOS
+from .service_caller import (
+    ANSWER_MARGIN,
+    awaitable,
+    blocking,
+    GatewayError,
+    GatewayUnavailable,
+    ServiceCaller,
+)
 
 DEFAULT_GATEWAY = '/can0/cbcan'
 DEFAULT_WAIT = 5.0
-# Seconds an answer may take beyond the SDO timeout of the request (a segmented transfer of
-# a large object takes many SDO round trips, each with its own timeout).
-ANSWER_MARGIN = 30.0
-# How often the client's thread looks at deadlines and newly found services while calls
-# wait and nothing else wakes it.
-POLL = 0.1
 
 NMT_COMMANDS = {
     'start': NmtCommand.Request.START,
@@ -53,14 +48,6 @@ NMT_COMMANDS = {
     'reset': NmtCommand.Request.RESET_NODE,
     'reset-comm': NmtCommand.Request.RESET_COMMUNICATION,
 }
-
-
-class GatewayError(Exception):
-    """A call to the gateway did not succeed."""
-
-
-class GatewayUnavailable(GatewayError):
-    """No gateway answers: it is not running, not discovered, or did not reply in time."""
 
 
 class RequestFailed(GatewayError):
@@ -160,33 +147,7 @@ def _decoded(data: bytes, value_type: str, what: str) -> Value:
         raise ValueError(f'{what}: {error}') from None
 
 
-def _nothing(*_arguments) -> None:
-    """Do nothing: a callback that is there to wake an executor when it is scheduled."""
-
-
-def _named(method, steps, suffix: str = ''):
-    """Give ``method`` the documentation of ``steps`` and its name without the underscore."""
-    functools.update_wrapper(method, steps)
-    method.__name__ = steps.__name__.lstrip('_') + suffix
-    method.__qualname__ = steps.__qualname__.replace(steps.__name__, method.__name__)
-    return method
-
-
-def _blocking(steps):
-    """Return the blocking method that runs the generator method ``steps``."""
-    def method(self, *args, **kwargs):
-        return self._block(steps(self, *args, **kwargs))
-    return _named(method, steps)
-
-
-def _awaitable(steps):
-    """Return the ``async`` method that runs the generator method ``steps``."""
-    async def method(self, *args, **kwargs):
-        return await self._await(steps(self, *args, **kwargs))
-    return _named(method, steps, '_async')
-
-
-class GatewayClient:
+class GatewayClient(ServiceCaller):
     """The services and node states of one gateway (``/can0/cbcan``), called from ``node``.
 
     ``wait``: seconds to wait for the gateway's services to be found. Call :meth:`close`
@@ -194,44 +155,8 @@ class GatewayClient:
     """
 
     def __init__(self, node: Node, gateway: str = DEFAULT_GATEWAY, wait: float = DEFAULT_WAIT):
-        name = gateway.strip().rstrip('/')
-        self.gateway = name if name.startswith('/') else f'/{name}'
-        self.wait = wait
-        self._node = node
-        self._own = Node(f'{node.get_name()}_gateway_client_{uuid.uuid4().hex[:8]}',
-                         namespace=node.get_namespace(), context=node.context,
-                         start_parameter_services=False, enable_rosout=False)
-        self._clients = {}
+        super().__init__(node, gateway, wait)
         self._latest_states = None
-        self._lock = threading.Lock()
-        # (condition, its future, deadline): looked at by the thread after each spin.
-        self._watches = []
-        self._stopped = False  # the thread ends, or has ended
-        self._closed = False
-        self._wake = self._own.create_guard_condition(_nothing)
-        self._executor = SingleThreadedExecutor(context=node.context)
-        self._executor.add_node(self._own)
-        self._spinner = threading.Thread(target=self._spin, daemon=True,
-                                         name=f'gateway client {self.gateway}')
-        self._spinner.start()
-
-    def __enter__(self) -> 'GatewayClient':
-        return self
-
-    def __exit__(self, *_exception) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """Stop the client's thread and destroy its node; waiting calls fail at once."""
-        with self._lock:
-            if self._closed:
-                return
-            self._closed = self._stopped = True
-        if self._spinner.is_alive():
-            self._wake.trigger()
-            self._spinner.join()
-        self._executor.shutdown(timeout_sec=1.0)
-        self._own.destroy_node()
 
     def subscribe_states(self, callback):
         """Call ``callback(NodeStates)`` on ``node``'s executor for every state change.
@@ -240,108 +165,6 @@ class GatewayClient:
         """
         return self._node.create_subscription(NodeStates, f'{self.gateway}/node_states',
                                               callback, NODE_STATES_QOS)
-
-    # --- the thread that spins the client's own node
-
-    def _spin(self) -> None:
-        reason = 'the client is closed'
-        try:
-            while not self._stopped:
-                # Deadlines need looking at; without any, only an event (an answer, a new
-                # call, close) can change something, and each wakes the executor.
-                self._executor.spin_once(timeout_sec=POLL if self._watches else None)
-                self._settle(time.monotonic())
-        except Exception as error:  # rclpy shut down under the client: fail every caller
-            reason = f'the client stopped: {error!r}'
-        with self._lock:
-            self._stopped = True
-            watches, self._watches = self._watches, []
-        for _condition, future, _deadline in watches:
-            future.set_exception(GatewayUnavailable(reason))
-
-    def _settle(self, now: float) -> None:
-        finished = []
-        with self._lock:
-            waiting = []
-            for condition, future, deadline in self._watches:
-                holds = bool(condition())
-                if holds or now >= deadline:
-                    finished.append((future, holds))
-                else:
-                    waiting.append((condition, future, deadline))
-            self._watches = waiting
-        for future, holds in finished:
-            future.set_result(holds)
-
-    def _when(self, condition, timeout: float) -> ThreadFuture:
-        """Return a future: True once ``condition()`` holds, False after ``timeout`` s.
-
-        Futures of rclpy are not waited on directly: with several threads calling while
-        another spins, about 1 in 30 completed without running its done-callback.
-        """
-        future = ThreadFuture()
-        if condition():
-            future.set_result(True)
-            return future
-        with self._lock:
-            if self._stopped:
-                future.set_exception(GatewayUnavailable('the client is closed'))
-                return future
-            self._watches.append((condition, future, time.monotonic() + timeout))
-        self._wake.trigger()
-        return future
-
-    def _block(self, steps):
-        """Run a generator of steps, waiting for each future it yields in this thread."""
-        outcome = None
-        try:
-            while True:
-                outcome = steps.send(outcome).result()
-        except StopIteration as done:
-            return done.value
-
-    async def _await(self, steps):
-        """Run a generator of steps, awaiting each future it yields on ``node``'s executor."""
-        outcome = None
-        try:
-            while True:
-                waited = steps.send(outcome)
-                # set_result schedules the waiter's done-callback on the executor, which
-                # wakes it to resume this coroutine; nothing else would wake it.
-                waiter = RosFuture(executor=self._node.executor)
-                waiter.add_done_callback(_nothing)
-                waited.add_done_callback(functools.partial(_hand_over, waiter))
-                outcome = await waiter
-        except StopIteration as done:
-            return done.value
-
-    # --- one exchange with a service; the typed calls below are built on it
-
-    def _client(self, service_type, service: str):
-        with self._lock:
-            if service not in self._clients:
-                self._clients[service] = self._own.create_client(
-                    service_type, f'{self.gateway}/{service}', qos_profile=SERVICE_QOS)
-            return self._clients[service]
-
-    def _call(self, service_type, service: str, request,
-                  answer_within: Optional[float] = None):
-        """Call ``gateway/service`` and return the response, whatever it says."""
-        client = self._client(service_type, service)
-        if not (yield self._when(client.service_is_ready, self.wait)):
-            raise GatewayUnavailable(
-                f'no gateway at {self.gateway}: is cbcan_node running? (waited '
-                f'{self.wait:g} s for {service}; check the gateway name and ROS_DOMAIN_ID)')
-        within = answer_within or self.wait + ANSWER_MARGIN
-        future = client.call_async(request)
-        if not (yield self._when(future.done, within)):
-            future.cancel()
-            raise GatewayUnavailable(f'{self.gateway}/{service} did not answer within '
-                                     f'{within:g} s')
-        return future.result()
-
-    call = _blocking(_call)
-    call_async = _awaitable(_call)
 
     def _read(self, node_id: int, index: int, subindex: int = 0, type: str = 'hex',
               timeout: float = 0.0, max_size: int = 0):
@@ -358,8 +181,8 @@ class GatewayClient:
             raise RequestFailed(what, response)
         return _decoded(bytes(response.data), type, what)
 
-    read = _blocking(_read)
-    read_async = _awaitable(_read)
+    read = blocking(_read)
+    read_async = awaitable(_read)
 
     def _write(self, node_id: int, index: int, subindex: int, value: Value, type: str = 'hex',
                timeout: float = 0.0):
@@ -372,8 +195,8 @@ class GatewayClient:
         if not response.success:
             raise RequestFailed(what, response)
 
-    write = _blocking(_write)
-    write_async = _awaitable(_write)
+    write = blocking(_write)
+    write_async = awaitable(_write)
 
     def _batch(self, accesses: Sequence[Union[Read, Write, SdoAccess]],
                timeout: float = 0.0):
@@ -398,8 +221,8 @@ class GatewayClient:
             results.append(result)
         return results
 
-    batch = _blocking(_batch)
-    batch_async = _awaitable(_batch)
+    batch = blocking(_batch)
+    batch_async = awaitable(_batch)
 
     def _nmt(self, node_id: int, command: Union[str, int]):
         """Send an NMT command to a node (0 = all): start, stop, preop, reset, reset-comm."""
@@ -412,8 +235,8 @@ class GatewayClient:
         if not response.success:
             raise RequestFailed(f'NMT command {command} to node {node_id}', response)
 
-    nmt = _blocking(_nmt)
-    nmt_async = _awaitable(_nmt)
+    nmt = blocking(_nmt)
+    nmt_async = awaitable(_nmt)
 
     def _state(self, node_id: int):
         """Return a node's state as it last reported it: the NmtState answer.
@@ -427,8 +250,8 @@ class GatewayClient:
             raise RequestFailed(f'state of node {node_id}', response)
         return response
 
-    state = _blocking(_state)
-    state_async = _awaitable(_state)
+    state = blocking(_state)
+    state_async = awaitable(_state)
 
     def _node_states(self):
         """Return the latest ``node_states`` message (every known node, its state)."""
@@ -446,23 +269,16 @@ class GatewayClient:
         del self._latest_states[:-1]
         return latest
 
-    node_states = _blocking(_node_states)
-    node_states_async = _awaitable(_node_states)
+    node_states = blocking(_node_states)
+    node_states_async = awaitable(_node_states)
 
     def _states(self):
         """Return ``{node id: state name}`` of every node the gateway knows."""
         message = yield from self._node_states()
         return {node.node_id: node.state_name for node in message.nodes}
 
-    states = _blocking(_states)
-    states_async = _awaitable(_states)
-
-
-def _hand_over(waiter: RosFuture, waited: ThreadFuture) -> None:
-    if waited.exception() is not None:
-        waiter.set_exception(waited.exception())
-    else:
-        waiter.set_result(waited.result())
+    states = blocking(_states)
+    states_async = awaitable(_states)
 
 
 __all__ = ['GatewayClient', 'GatewayError', 'GatewayUnavailable', 'NMT_COMMANDS', 'Read',
