@@ -2,7 +2,7 @@
 
 canopen's own classes and transfer streams are used; where they fall short for a gateway
 that must give every request exactly one right answer, they are extended here and nowhere
-else. Each gap is listed in the README's "Library gaps worked around".
+else. Each gap is listed in docs/library_gaps.md.
 
 The SDO client (:class:`StrictSdoClient`, one transfer at a time, with the checks CiA 301
 asks of a client):

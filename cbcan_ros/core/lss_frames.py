@@ -1,7 +1,7 @@
 """LSS (CiA 305) on the wire: requests sent on 0x7E5, answers matched on 0x7E4, Fastscan.
 
 The frames and command specifiers are python-canopen's (``canopen.lss``); its ``LssMaster``
-is not used because it does not fit a gateway (see the README's library gaps): it waits
+is not used because it does not fit a gateway (see docs/library_gaps.md): it waits
 0.5 s on every unanswered request, and a Fastscan probes bit by bit (silence means a 1 bit),
 so a scan finding nothing took 0.5 s and one device tens of seconds; it keeps one queue for
 every answer, so a late or foreign frame answers the next request; it returns nothing for

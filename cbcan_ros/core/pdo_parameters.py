@@ -8,7 +8,7 @@ protection. When the file's parameters are written, each PDO is disabled while i
 python-canopen's ``PdoMap`` is not used for this: it reads mappings through canopen's own SDO
 client (a second client on the device's SDO channel, racing the gateway's), needs every
 mapped object in an EDS, drops dummy entries, and decodes bit fields through the object's
-full type; see the README's library gaps.
+full type; see docs/library_gaps.md.
 """
 
 import logging

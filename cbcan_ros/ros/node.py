@@ -30,7 +30,7 @@ SPIN_CHECK = 1.0
 # answered "shutting down" at once, took about a second under load.
 SPIN_STOP = 5.0
 
-# The longest a shutdown may take from the first signal (the README's promise). Its steps
+# The longest a shutdown may take from the first signal (docs/services.md, Shutdown). Its steps
 # wait for threads with timeouts of their own (SPIN_STOP, ANSWER_GRACE, the bus and device
 # threads), which add up to about this much only when several hang at once; a step that
 # hangs without a timeout (a driver stuck in a system call) must not keep the process alive.

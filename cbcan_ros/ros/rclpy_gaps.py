@@ -1,7 +1,7 @@
 """Everything the gateway adds to rclpy 7.1.6 (Jazzy), in one place, to be offered upstream.
 
 Each function here reaches into rclpy where it offers no public way, and each gap is listed
-in the README's "Library gaps worked around":
+in docs/library_gaps.md:
 
 1. A service cannot answer later, from another thread (rclcpp has deferred responses):
    :func:`intercept_responses` replaces the service's own ``send_response``, which rclpy's
