@@ -8,38 +8,56 @@ entry's own name or sub-index.
 
 import difflib
 import os
-from typing import Iterator, Optional, Union
+from typing import Callable, Iterator, List, Optional, Union
 
-import canopen
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
 
+from .canopen_gaps.eds_import import EdsError, import_dictionary
 from .text import quoted
 from .values import parse_integer
 
 PATH_LIMIT = 120  # characters of a path shown in a message
-REASON_LIMIT = 200  # characters of canopen's own error text shown in a message
 SUGGESTIONS = 5
 
 DictionaryObject = Union[ODVariable, ODRecord, ODArray]
 
 
-def load(path: str, node_id: Optional[int] = None) -> ObjectDictionary:
+def load(path: str, node_id: Optional[int] = None,
+         note: Optional[Callable[[str], None]] = None) -> ObjectDictionary:
     """Parse an EDS or DCF file with canopen; raise ValueError saying what is wrong with it.
 
-    ``node_id`` resolves the $NODEID expressions of a DCF.
+    ``node_id`` resolves the $NODEID expressions of a DCF. ``note``, if given, is told once,
+    in one line, which objects of the file canopen could not type.
     """
     shown = quoted(path, PATH_LIMIT)
     if not os.path.isfile(path):
         raise ValueError(f'{shown}: no such file')
     try:
-        dictionary = canopen.import_od(path, node_id or None)
-    except Exception as error:  # noqa: BLE001 - canopen raises many kinds for a bad file
-        reason = str(error).replace('\n', ' ')
-        raise ValueError(f'{shown} is not an EDS or DCF file canopen can read: '
-                         f'{type(error).__name__}: {reason[:REASON_LIMIT]}') from None
-    if not len(dictionary):
+        imported = import_dictionary(path, node_id or None)
+    except EdsError as error:
+        raise ValueError(f'{shown} is not an EDS or DCF file canopen can read: {error}') \
+            from None
+    except OSError as error:
+        raise ValueError(f'{shown} cannot be read: {error.strerror}') from None
+    if not len(imported.dictionary):
         raise ValueError(f'{shown} defines no objects: is it an EDS or DCF file?')
-    return dictionary
+    if note and imported.skipped:
+        note(f'{shown}: {describe_skipped(imported.skipped)}')
+    return imported.dictionary
+
+
+def describe_skipped(skipped) -> str:
+    """Return in one line what canopen could not type in a file, object by object."""
+    untyped = [name for name, reason in skipped if name]
+    other = [reason for name, reason in skipped if not name]
+    parts = []
+    if untyped:
+        shown = ', '.join(repr(name) for name in untyped[:SUGGESTIONS])
+        more = f' and {len(untyped) - SUGGESTIONS} more' if len(untyped) > SUGGESTIONS else ''
+        parts.append(f'{len(untyped)} object(s) of a data type canopen does not know are read '
+                     f'and written as raw bytes: {shown}{more}')
+    parts += other
+    return '; '.join(parts)
 
 
 def find(dictionary: ObjectDictionary, name: str, source: str = 'the EDS') -> DictionaryObject:
@@ -95,14 +113,34 @@ def describe_entries(parent: Union[ODRecord, ODArray]) -> str:
 
 def _top_level(dictionary: ObjectDictionary, name: str) -> Optional[DictionaryObject]:
     wanted = name.strip().casefold()
-    return next((obj for key, obj in dictionary.names.items() if key.casefold() == wanted),
-                None)
+    return _only([dictionary[index] for index in dictionary
+                  if dictionary[index].name.casefold() == wanted], name, 'its index')
 
 
 def _entry_by_name(parent: Union[ODRecord, ODArray], name: str) -> Optional[ODVariable]:
     wanted = name.strip().casefold()
-    return next((variable for key, variable in parent.names.items()
-                 if key.casefold() == wanted), None)
+    return _only([variable for variable in _entries(parent)
+                  if variable.name.casefold() == wanted], f'{parent.name}.{name}',
+                 'the sub-index')
+
+
+def _only(matches: List, name: str, instead: str):
+    """Return the one match, None for none; refuse a name several objects share."""
+    if len(matches) > 1:
+        raise ValueError(f'{quoted(name)} is ambiguous: it could be {_places(matches)}; '
+                         f'name {instead}')
+    return matches[0] if matches else None
+
+
+def _places(objects: List) -> str:
+    """Return where ``objects`` are, as 0x6200:01..08 for a run of one object's entries."""
+    index = objects[0].index
+    subindices = [getattr(obj, 'subindex', None) for obj in objects]
+    if all(obj.index == index for obj in objects) and None not in subindices:
+        if subindices == list(range(subindices[0], subindices[-1] + 1)):
+            return f'0x{index:04X}:{subindices[0]:02X}..{subindices[-1]:02X}'
+        return f'0x{index:04X}:' + ', '.join(f'{sub:02X}' for sub in subindices)
+    return ', '.join(f'0x{obj.index:04X}' for obj in objects)
 
 
 def _entries(parent: Union[ODRecord, ODArray]) -> Iterator[ODVariable]:

@@ -17,7 +17,7 @@ from typing import Callable, Dict, List, Optional
 from canopen.emcy import EmcyError
 
 from .bus import wall_clock
-from .canopen_gaps import EmcyDecoder, MalformedEmcy
+from .canopen_gaps.emcy import EmcyDecoder, MalformedEmcy
 
 LOGGER = logging.getLogger(__name__)
 

@@ -18,7 +18,8 @@ from canopen import objectdictionary as od
 
 from . import abort_codes, eds, nmt
 from .bus import BusDown, BusStatus, BusSupervisor
-from .canopen_gaps import StrictSdoClient, without_heartbeat_producer
+from .canopen_gaps.local_node import without_heartbeat_producer
+from .canopen_gaps.sdo_client import StrictSdoClient
 from .emcy import EmcyMonitor
 from .lss_frames import is_all_waiting, probe_wait
 from .lss_master import LssMaster

@@ -16,7 +16,7 @@ import time
 from typing import Callable, List, Optional, Sequence
 
 from . import abort_codes
-from .canopen_gaps import StrictSdoClient, TransferAborted
+from .canopen_gaps.sdo_client import StrictSdoClient, TransferAborted
 from .request_queue import answer, Deadlines, JobQueue
 from .sdo import Access, one_each, SdoResult
 from .sdo_transfer import download, run_guarded, upload

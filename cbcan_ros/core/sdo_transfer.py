@@ -13,7 +13,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from . import abort_codes
 from .bus import BusDown
-from .canopen_gaps import (
+from .canopen_gaps.sdo_client import (
     close_without_frames,
     DownloadStream,
     StrictSdoClient,

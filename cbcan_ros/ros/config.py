@@ -223,7 +223,7 @@ class NodeParameters:
             path = self.value(name)
             if path:
                 try:
-                    eds.load(path, node_id)
+                    eds.load(path, node_id, note=self._node.get_logger().warning)
                 except ValueError as error:
                     raise ValueError(f'parameter {name}: {error}') from None
 

@@ -15,11 +15,10 @@ from typing import Dict, Optional
 import can
 import canopen
 
-from ..core import nmt
+from ..core import eds, nmt
 from ..core.gateway import NOTIFIER_CYCLE
 
 SLOW_INDEX = 0x2200
-DOMAIN_INDEX = 0x2020
 COMMUNICATION_PROFILE = range(0x1000, 0x2000)
 
 
@@ -34,7 +33,7 @@ class SimulatedDevice:
         self._bus_options = dict(interface=interface, channel=channel, **(bus_options or {}))
         self.network = canopen.Network()
         self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
-        self.node = canopen.LocalNode(node_id, eds_path)
+        self.node = canopen.LocalNode(node_id, eds.load(eds_path, node_id))
         self.node.add_read_callback(self._on_read)
         self._guard_toggle = 0
         self._nmt_lock = threading.Lock()
@@ -100,7 +99,6 @@ class SimulatedDevice:
         with self._nmt_lock:
             for index in [index for index in self.node.data_store if index in clear]:
                 del self.node.data_store[index]
-            self.node.data_store.setdefault(DOMAIN_INDEX, {})[0] = bytes(range(200))
             self.node.nmt.send_command(nmt.RESET_NODE)  # state 0, sends the boot-up message
             self.node.nmt.send_command(nmt.ENTER_PRE_OPERATIONAL)  # starts heartbeats (0x1017)
 

@@ -1,6 +1,7 @@
 """The object a command names: by index and sub-index, or by its name in the node's EDS."""
 
 from dataclasses import dataclass
+import sys
 from typing import List, Optional, Tuple
 
 from canopen.objectdictionary import ObjectDictionary, ODVariable
@@ -28,11 +29,16 @@ class Target:
         return f'{where} ({self.variable.qualname})' if self.variable else where
 
 
+def note(text: str) -> None:
+    """Say on stderr, once per file, what canopen could not read of it."""
+    print(f'note: {text}', file=sys.stderr)
+
+
 def _dictionary(client: Client, args) -> Tuple[ObjectDictionary, str]:
     """Return the dictionary that names the objects of ``args.node``, and where it is from."""
     if args.eds:
         try:
-            return eds.load(args.eds, args.node), quoted(args.eds, eds.PATH_LIMIT)
+            return eds.load(args.eds, args.node, note), quoted(args.eds, eds.PATH_LIMIT)
         except ValueError as error:
             raise UsageError(f'--eds {error}') from None
     if args.node == 0:
@@ -47,7 +53,7 @@ def _dictionary(client: Client, args) -> Tuple[ObjectDictionary, str]:
         raise UsageError(f"node {args.node} has no EDS: the gateway's parameter {name} is "
                          f'empty; set it, or give --eds FILE')
     try:
-        return eds.load(path, args.node), quoted(path, eds.PATH_LIMIT)
+        return eds.load(path, args.node, note), quoted(path, eds.PATH_LIMIT)
     except ValueError as error:
         raise UsageError(f"the gateway's parameter {name}: {error} (this command reads the "
                          f'file on this machine; give --eds FILE if it is elsewhere)') from None

@@ -1,4 +1,4 @@
-"""Everything the gateway adds to canopen 2.4.1, in one place, to be offered upstream.
+"""canopen 2.4.1's SDO client and transfer streams, with what a gateway needs of them.
 
 canopen's own classes and transfer streams are used; where they fall short for a gateway
 that must give every request exactly one right answer, they are extended here and nowhere
@@ -34,14 +34,6 @@ The transfer streams:
    and :func:`close_without_frames` ends any stream after a failure without its frames.
 8. A segment may carry no data and still announce more: only canopen's private ``_done``
    tells the upload's end (:func:`upload_finished`).
-
-Elsewhere:
-
-9. A ``LocalNode`` starts a heartbeat producer when 0x1017 is written, also for a dictionary
-   that is on no bus (the gateway's own): :func:`without_heartbeat_producer`.
-10. ``EmcyConsumer`` keeps every EMCY it ever received in two lists (memory grows on a
-    long-running robot), and a frame shorter than 8 bytes raises ``struct.error`` into the
-    receive thread: :class:`EmcyDecoder` keeps the latest only and says "malformed".
 """
 
 import io
@@ -49,15 +41,13 @@ import queue
 import struct
 import threading
 import time
-from typing import Callable, Optional, Tuple, Union
+from typing import Callable, Optional, Union
 
-import canopen
-from canopen.emcy import EmcyConsumer, EmcyError
 from canopen.sdo.client import SdoClient, WritableStream
 from canopen.sdo.exceptions import SdoAbortedError
 
-from . import abort_codes
-from .bus import BusDown, prompt
+from .. import abort_codes
+from ..bus import BusDown, prompt
 
 # Client command specifiers (CiA 301), top three bits of the first byte of a request.
 _CCS_DOWNLOAD_SEGMENT = 0
@@ -372,38 +362,3 @@ def close_without_frames(stream) -> None:
 def upload_finished(stream) -> bool:
     """Return whether the device has sent the last segment of the upload on ``stream``."""
     return getattr(stream, '_done', True)
-
-
-def without_heartbeat_producer(node: canopen.LocalNode) -> canopen.LocalNode:
-    """Return ``node`` with no heartbeat producer behind its 0x1017 (a node on no bus)."""
-    node._write_callbacks.remove(node.nmt.on_write)
-    return node
-
-
-class MalformedEmcy(Exception):
-    """A frame on an EMCY COB-ID that is not an EMCY (CiA 301: 8 bytes)."""
-
-
-class EmcyDecoder:
-    """canopen's ``EmcyConsumer`` for one device, keeping only what is still needed."""
-
-    def __init__(self):
-        self._consumer = EmcyConsumer()
-
-    def decode(self, can_id: int, data: bytes, timestamp: float) -> Tuple[EmcyError, bool]:
-        """Decode one frame; return the EMCY and whether it is an active error.
-
-        Raises :class:`MalformedEmcy` for a frame shorter than an EMCY.
-        """
-        consumer = self._consumer
-        try:
-            consumer.on_emcy(can_id, data, timestamp)
-        except struct.error:
-            raise MalformedEmcy(f'{len(data)} bytes') from None
-        with consumer.emcy_received:
-            error = consumer.log[-1]
-            # An error reset has emptied the consumer's active list; any other EMCY is on it.
-            is_active = bool(consumer.active) and consumer.active[-1] is error
-            del consumer.log[:]
-            del consumer.active[:-1]
-        return error, is_active
