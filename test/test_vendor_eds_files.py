@@ -15,7 +15,9 @@ import struct
 import subprocess
 from typing import List, Optional, Union
 
+from lifecycle_msgs.msg import Transition
 import pytest
+from test_lifecycle import Managed
 
 from cbcan_ros.core import eds
 from cbcan_ros.ros.cli import build_parser, Client, run
@@ -380,3 +382,20 @@ def test_a_latin_1_file_is_read_with_its_names(tmp_path):
     path.write_bytes(text.encode('latin-1'))
     dictionary = eds.load(str(path), NODE)
     assert eds.find(dictionary, 'Gain at 20 °C').index == 0x2005
+
+
+def test_a_file_canopen_cannot_parse_fails_lifecycle_configure_naming_file_and_line(
+        start_node, client_node, tmp_path):
+    path = tmp_path / 'drive.eds'
+    write_file(path, 'hex')
+    text = path.read_text() + '\n[2100]\nParameterName=Bad type\nDataType=zz\nAccessType=rw\n'
+    path.write_text(text)
+    number = len(text.splitlines()) - 3
+    managed = Managed(start_node, client_node, '-p', f'nodes:=[{NODE}]',
+                      '-p', f'node_{NODE}.eds:={path}')
+    assert not managed.transition(Transition.TRANSITION_CONFIGURE)
+    assert managed.state() == 'unconfigured'
+    wait_until(lambda: f'at line {number}:' in managed.node.output(), PROMPT,
+               f'the file and line in the log:\n{managed.node.output()}')
+    output = managed.node.output()
+    assert f"parameter node_{NODE}.eds: '{path}'" in output and 'Traceback' not in output, output
