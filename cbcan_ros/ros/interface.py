@@ -16,6 +16,7 @@ from concurrent.futures import Future
 import logging
 import threading
 import time
+from typing import Tuple
 
 from builtin_interfaces.msg import Time
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -193,7 +194,6 @@ class GatewayInterface:
             for service_type, name, callback in (
                 (NmtCommand, 'nmt_command', self._on_nmt_command),
                 (NmtState, 'nmt_state', self._on_nmt_state))]
-        self._all_services = [deferred.service for deferred in self._deferred] + self._services
 
         self._states_publisher = node.create_publisher(NodeStates, '~/node_states',
                                                        NODE_STATES_QOS)
@@ -260,7 +260,7 @@ class GatewayInterface:
             device.stop()
         self._answer_the_last_requests()
         node = self._node
-        for service in self._all_services:
+        for service in [deferred.service for deferred in self._deferred] + self._services:
             node.destroy_service(service)
         self._states_closing = True
         self._states_changed.set()
@@ -282,27 +282,30 @@ class GatewayInterface:
         """
         lingered = 0.0
         answered_then = self._answered_before_shutdown
+        plain = 0  # drained calls of the services answered in the callback (NMT)
         for _ in range(LINGER_ROUNDS):
-            drained = self._drain()
+            drained, plain_drained = self._drain()
+            plain += plain_drained
             if not drained and self._calls.answered == answered_then:
                 break
             answered_then = self._calls.answered
             time.sleep(ANSWER_LINGER)
             lingered += ANSWER_LINGER
-        else:
-            self._drain()  # what arrived during the last wait is answered, not waited for
-        answered = self._calls.answered - self._answered_before_shutdown
+        else:  # what arrived during the last wait is answered, not waited for
+            plain += self._drain()[1]
+        answered = self._calls.answered - self._answered_before_shutdown + plain
         logger = self._node.get_logger()
         logger.info(f'shutdown: {answered} calls answered while shutting down; services kept '
                     f'{lingered:.1f} s for the answers to reach their callers')
         if self._calls.waiting:
             logger.error(f'shutdown: {self._calls.waiting} calls taken were never answered')
 
-    def _drain(self) -> int:
-        """Answer the requests waiting in the services; return how many there were."""
-        drained = sum(drain(service) for service in self._all_services)
+    def _drain(self) -> Tuple[int, int]:
+        """Answer the requests waiting in the services; return (how many, how many of NMT)."""
+        plain = sum(drain(service) for service in self._services)
+        drained = plain + sum(drain(deferred.service) for deferred in self._deferred)
         self._calls.wait_until_idle(ANSWER_GRACE)
-        return drained
+        return drained, plain
 
     def _start_read(self, request) -> Future:
         if not self.active:
