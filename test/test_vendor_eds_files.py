@@ -399,3 +399,90 @@ def test_a_file_canopen_cannot_parse_fails_lifecycle_configure_naming_file_and_l
                f'the file and line in the log:\n{managed.node.output()}')
     output = managed.node.output()
     assert f"parameter node_{NODE}.eds: '{path}'" in output and 'Traceback' not in output, output
+
+
+HEADER = '\n'.join([section('FileInfo', ['FileName=quirk.eds']),
+                    section('DeviceInfo', ['VendorName=Test vendor']),
+                    section('1000', ['ParameterName=Device type', 'ObjectType=0x7',
+                                     'DataType=0x0007', 'AccessType=ro',
+                                     'DefaultValue=0x00020192'])])
+
+
+def quirk_file(tmp_path, *sections: str, prefix: str = '', name: str = 'quirk.eds'):
+    """Write HEADER and ``sections`` (with ``prefix`` before all, e.g. a byte order mark)."""
+    path = tmp_path / name
+    path.write_text(prefix + HEADER + '\n' + '\n'.join(sections), encoding='utf-8')
+    return str(path)
+
+
+def var(index: int, data_type: int, *lines: str) -> str:
+    """Return a VAR section of ``data_type`` with ``lines`` (DefaultValue=...)."""
+    return section(f'{index:04x}', [f'ParameterName=Object {index:04X}', 'ObjectType=0x7',
+                                    f'DataType=0x{data_type:04X}', 'AccessType=rw', *lines])
+
+
+def test_files_with_a_byte_order_mark_are_read(tmp_path):
+    dictionary = eds.load(quirk_file(tmp_path, prefix='\ufeff'), NODE)
+    assert dictionary[0x1000].default == 0x20192
+
+
+def test_values_canopen_leaves_without_one_are_read_as_written(tmp_path):
+    notes = []
+    dictionary = eds.load(quirk_file(
+        tmp_path, var(0x2000, 0x5, 'DefaultValue=$NODEID'),
+        var(0x2001, 0x6, 'DefaultValue=0100'),
+        var(0x2002, 0x3, 'DefaultValue=0x10000'), var(0x2003, 0x5, 'DefaultValue=abc')),
+        NODE, notes.append)
+    assert dictionary[0x2000].default == NODE
+    assert dictionary[0x2001].default == 100
+    assert dictionary[0x2002].default is None and dictionary[0x2003].default is None
+    assert len(notes) == 1, notes
+    assert "'Object 2002': DefaultValue '0x10000' does not fit its type" in notes[0], notes
+    assert "'Object 2003': DefaultValue 'abc' is not a number" in notes[0], notes
+
+
+def test_compact_arrays_in_lowercase_sections_and_type_definitions_are_read(tmp_path):
+    dictionary = eds.load(quirk_file(
+        tmp_path,
+        section('60a0', ['ParameterName=Inputs', 'ObjectType=0x8', 'DataType=0x0005',
+                         'AccessType=rw', 'DefaultValue=0x0', 'CompactSubObj=4']),
+        section('0040', ['ParameterName=Vendor struct', 'ObjectType=0x6', 'SubNumber=2']),
+        section('0040sub0', ['ParameterName=Entries', 'ObjectType=0x7', 'DataType=0x0005',
+                             'AccessType=ro', 'DefaultValue=1']),
+        section('0040sub1', ['ParameterName=Field', 'ObjectType=0x7', 'DataType=0x0006',
+                             'AccessType=ro', 'DefaultValue=0x0007'])), NODE)
+    assert dictionary[0x60A0][0].default == 4 and 0x0040 not in dictionary
+
+
+def test_a_dcf_commissioning_value_that_is_no_number_is_ignored_and_said(tmp_path):
+    notes = []
+    path = quirk_file(tmp_path, section('DeviceComissioning', ['NodeID=0x0B', 'Baudrate=']),
+                      name='drive.dcf')
+    assert eds.load(path, None, notes.append)[0x1000].default == 0x20192
+    assert len(notes) == 1 and 'Baudrate' in notes[0], notes
+
+
+@pytest.mark.parametrize('compact, reason', [
+    ('abc', "CompactSubObj='abc' is not a number"), ('256', 'out of range')])
+def test_a_compact_count_that_is_wrong_is_an_error_naming_its_line(tmp_path, compact, reason):
+    path = quirk_file(tmp_path, section('6200', [
+        'ParameterName=Outputs', 'ObjectType=0x8', 'DataType=0x0005', 'AccessType=rw',
+        'DefaultValue=0', f'CompactSubObj={compact}']))
+    line = open(path).read().splitlines().index('[6200]') + 1
+    with pytest.raises(ValueError, match=f'at line {line}: .*{reason}'):
+        eds.load(path, NODE)
+
+
+def test_a_simulated_device_of_a_file_without_heartbeat_or_pdo_mapping_starts(
+        make_gateway, tmp_path):
+    path = quirk_file(tmp_path, section('1800', ['ParameterName=TPDO 1', 'ObjectType=0x9',
+                                                 'SubNumber=2']),
+                      section('1800sub0', ['ParameterName=Entries', 'ObjectType=0x7',
+                                           'DataType=0x0005', 'AccessType=ro',
+                                           'DefaultValue=1']),
+                      section('1800sub1', ['ParameterName=COB-ID', 'ObjectType=0x7',
+                                           'DataType=0x0007', 'AccessType=rw',
+                                           'DefaultValue=$NODEID+0x180']))
+    gateway = make_gateway(simulation__devices=[NODE], simulation__eds=path)
+    answer = gateway.call('sdo_read', node_id=NODE, index=0x1000)
+    assert answer.success and bytes(answer.data) == bytes([0x92, 0x01, 0x02, 0x00]), answer

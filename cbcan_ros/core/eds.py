@@ -47,16 +47,16 @@ def load(path: str, node_id: Optional[int] = None,
 
 
 def describe_skipped(skipped) -> str:
-    """Return in one line what canopen could not type in a file, object by object."""
-    untyped = [name for name, reason in skipped if name]
-    other = [reason for name, reason in skipped if not name]
+    """Return in one line what canopen could not read of a file: the objects, by reason."""
+    by_reason = {}
+    for name, reason in skipped:
+        by_reason.setdefault(reason, []).append(name)
     parts = []
-    if untyped:
-        shown = ', '.join(repr(name) for name in untyped[:SUGGESTIONS])
-        more = f' and {len(untyped) - SUGGESTIONS} more' if len(untyped) > SUGGESTIONS else ''
-        parts.append(f'{len(untyped)} object(s) of a data type canopen does not know are read '
-                     f'and written as raw bytes: {shown}{more}')
-    parts += other
+    for reason, names in by_reason.items():
+        names = [name for name in names if name]  # '': the file as a whole
+        shown = ', '.join(repr(name) for name in names[:SUGGESTIONS])
+        more = f' and {len(names) - SUGGESTIONS} more' if len(names) > SUGGESTIONS else ''
+        parts.append(f'{shown}{more}: {reason}' if names else reason)
     return '; '.join(parts)
 
 

@@ -218,8 +218,12 @@ class NodeParameters:
 
         Raises ValueError naming the parameter and the file.
         """
-        for node_id in self._listed_devices():
-            name = device_file_parameter(node_id)
+        files = [(device_file_parameter(node_id), node_id)
+                 for node_id in self._listed_devices()]
+        simulated = self.node_ids('simulation.devices')
+        if simulated:
+            files.append(('simulation.eds', simulated[0]))
+        for name, node_id in files:
             path = self.value(name)
             if path:
                 try:

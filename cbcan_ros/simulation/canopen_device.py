@@ -8,17 +8,23 @@ while operational: event-driven TPDOs every event timer period with the current 
 written into its objects (canopen's ``PdoMap`` classes, read from the EDS).
 """
 
+import logging
 import threading
 import time
 from typing import Dict, Optional
 
 import can
 import canopen
+from canopen.objectdictionary import datatypes, ODVariable
 
 from ..core import eds, nmt
 from ..core.gateway import NOTIFIER_CYCLE
 
+LOGGER = logging.getLogger(__name__)
 SLOW_INDEX = 0x2200
+HEARTBEAT_TIME = 0x1017
+PDO_COMMUNICATION = (range(0x1400, 0x1600), range(0x1800, 0x1A00))  # RPDOs, TPDOs
+MAPPING_OFFSET = 0x200  # a PDO's mapping object follows its communication object by this
 COMMUNICATION_PROFILE = range(0x1000, 0x2000)
 
 
@@ -33,7 +39,8 @@ class SimulatedDevice:
         self._bus_options = dict(interface=interface, channel=channel, **(bus_options or {}))
         self.network = canopen.Network()
         self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
-        self.node = canopen.LocalNode(node_id, eds.load(eds_path, node_id))
+        self._eds_path = eds_path
+        self.node = canopen.LocalNode(node_id, self._simulatable(eds.load(eds_path, node_id)))
         self.node.add_read_callback(self._on_read)
         self._guard_toggle = 0
         self._nmt_lock = threading.Lock()
@@ -52,12 +59,19 @@ class SimulatedDevice:
         self.network.add_node(self.node)
         self.network.subscribe(0, self._on_nmt_command)
         self.network.notifier.add_listener(_RemoteFrameListener(self))
-        self.node.tpdo.read(from_od=True)
-        self.node.rpdo.read(from_od=True)
-        for rpdo in self.node.rpdo.map.values():
-            rpdo.add_callback(self._apply_rpdo)
+        try:
+            self.node.tpdo.read(from_od=True)
+            self.node.rpdo.read(from_od=True)
+        except Exception as error:  # noqa: BLE001 - canopen's PDO reading of a file it took
+            # A vendor file whose PDO objects canopen cannot read (a communication object
+            # without its mapping, entries without values): the device runs without PDOs.
+            LOGGER.warning('simulated device %d: the PDOs of %s are not simulated: %s',
+                           self.node_id, self._eds_path, error)
+        else:
+            for rpdo in self.node.rpdo.map.values():
+                rpdo.add_callback(self._apply_rpdo)
+            self._pdo_thread.start()
         self.boot()
-        self._pdo_thread.start()
 
     def stop(self) -> None:
         """Stop heartbeats and leave the bus (the device goes silent)."""
@@ -66,6 +80,32 @@ class SimulatedDevice:
         if self._pdo_thread.is_alive():
             self._pdo_thread.join()
         self.network.disconnect()
+
+    def _simulatable(self, dictionary):
+        """Return ``dictionary`` with what canopen's ``LocalNode`` needs of it.
+
+        canopen's NMT slave reads the producer heartbeat time (0x1017) as it boots, which a
+        device that only takes part in node guarding may lack (it gets 0 here), and its PDO
+        classes fail on a PDO communication object without its mapping object (such PDOs
+        are left out, said once).
+        """
+        heartbeat = dictionary.get(HEARTBEAT_TIME)
+        if heartbeat is None:
+            heartbeat = ODVariable('Producer heartbeat time', HEARTBEAT_TIME)
+            heartbeat.data_type = datatypes.UNSIGNED16
+            dictionary.add_object(heartbeat)
+        if heartbeat.default is None and heartbeat.value is None:
+            heartbeat.default = 0
+        unmapped = [index for index in dictionary
+                    if any(index in pdos for pdos in PDO_COMMUNICATION)
+                    and index + MAPPING_OFFSET not in dictionary]
+        for index in unmapped:
+            del dictionary[index]
+        if unmapped:
+            LOGGER.warning('simulated device %d: PDO communication objects without a mapping '
+                           'object in %s are not simulated: %s', self.node_id, self._eds_path,
+                           ', '.join(f'0x{index:04X}' for index in unmapped))
+        return dictionary
 
     def _apply_rpdo(self, rpdo) -> None:
         if self.state != nmt.OPERATIONAL or len(rpdo.data) < (rpdo.length + 7) // 8:

@@ -17,7 +17,15 @@ closed by :func:`import_dictionary` and listed in docs/library_gaps.md:
 4. A file canopen cannot parse raises whatever its parser met (``KeyError``, ``ValueError``,
    configparser's errors) mostly without a line: :class:`EdsError` says the line.
 5. canopen opens the file in the machine's locale encoding: a vendor file in Latin-1 (a
-   degree sign in a name) fails on a UTF-8 machine. It is read as UTF-8, else Latin-1.
+   degree sign in a name) fails on a UTF-8 machine, and a byte order mark fails any file. It
+   is read as UTF-8 (a byte order mark or not), else Latin-1.
+6. Values canopen leaves without a word: ``DefaultValue=$NODEID`` alone and ``0100`` (a
+   decimal with a leading zero) get no value, a value its type cannot hold is taken as it is
+   (and fails when read). The first are read as written; what no one can read, or what does
+   not fit, is left without a value and said with the untyped objects.
+7. Type definitions (DEFTYPE, DEFSTRUCT sections with entries) and a DCF commissioning value
+   that is not a number (an empty ``Baudrate``) make canopen refuse the whole file: the
+   definitions are left out, the value ignored and said.
 """
 
 from configparser import Error as ParserError
@@ -40,14 +48,24 @@ REASON_LIMIT = 200  # characters of canopen's own error text in a message
 CANOPEN_EDS_LOGGER = 'canopen.objectdictionary.eds'
 UNKNOWN_TYPE = re.compile(r'^(?P<name>.*) has an unknown or unsupported data type '
                           r'\((?P<type>0x[0-9A-Fa-f]+)\)$')
-SECTION_OF_OBJECT = re.compile(r'^[0-9A-Fa-f]{4}$')
-ARRAY, RECORD = 0x8, 0x9  # CiA 306 object types
+OBJECT_SECTION = re.compile(r'^[0-9A-Fa-f]{4}$')
+VAR, ARRAY, RECORD = 0x7, 0x8, 0x9  # CiA 306 object types
+TYPE_DEFINITIONS = (0x5, 0x6)  # DEFTYPE, DEFSTRUCT
+COMMISSIONING = 'DeviceComissioning'  # CiA 306 spells it so
 # configparser names the text it read ('<string>'); the line is said already.
 CONFIGPARSER_SOURCE = re.compile(r"While reading from '<string>' \[line\s*\d+\]: |"
                                  r"file: '<string>', ")
-SIGNED_BITS = {datatypes.INTEGER8: 8, datatypes.INTEGER16: 16, datatypes.INTEGER24: 24,
-               datatypes.INTEGER32: 32, datatypes.INTEGER40: 40, datatypes.INTEGER48: 48,
-               datatypes.INTEGER56: 56, datatypes.INTEGER64: 64}
+# Integer data types: (bits, signed)
+INTEGER_BITS = {
+    datatypes.BOOLEAN: (1, False),
+    datatypes.INTEGER8: (8, True), datatypes.INTEGER16: (16, True),
+    datatypes.INTEGER24: (24, True), datatypes.INTEGER32: (32, True),
+    datatypes.INTEGER40: (40, True), datatypes.INTEGER48: (48, True),
+    datatypes.INTEGER56: (56, True), datatypes.INTEGER64: (64, True),
+    datatypes.UNSIGNED8: (8, False), datatypes.UNSIGNED16: (16, False),
+    datatypes.UNSIGNED24: (24, False), datatypes.UNSIGNED32: (32, False),
+    datatypes.UNSIGNED40: (40, False), datatypes.UNSIGNED48: (48, False),
+    datatypes.UNSIGNED56: (56, False), datatypes.UNSIGNED64: (64, False)}
 
 
 class EdsError(ValueError):
@@ -84,7 +102,7 @@ def import_dictionary(path: str, node_id: Optional[int]) -> ImportedDictionary:
         parser = _parse(text)
     except ParserError as error:
         raise EdsError(_describe(text, error)) from None
-    _compact_records_as_arrays(parser)
+    skipped = _prepare(parser, text)
     source = io.StringIO()
     parser.write(source)
     source.seek(0)
@@ -100,20 +118,22 @@ def import_dictionary(path: str, node_id: Optional[int]) -> ImportedDictionary:
     finally:
         logger.removeHandler(collect)
         logger.propagate = propagate
+    skipped += _skipped(collect.messages)
     for variable in _variables(dictionary):
-        _signed_from_twos_complement(variable)
+        skipped += _values_as_written(variable, node_id)
+    sections = {section.upper(): section for section in parser.sections()}
     for obj in dictionary.values():
         if isinstance(obj, ODArray):
-            _compact_count(obj, parser)
-    return ImportedDictionary(dictionary, _skipped(collect.messages))
+            _compact_count(obj, parser, sections.get(f'{obj.index:04X}'), text)
+    return ImportedDictionary(dictionary, skipped)
 
 
 def _read_text(path: str) -> str:
-    """Return the file's text: UTF-8, else Latin-1 (vendors' tools write both)."""
+    """Return the file's text: UTF-8 (with or without a byte order mark), else Latin-1."""
     with open(path, 'rb') as file:
         raw = file.read()
     try:
-        return raw.decode('utf-8')
+        return raw.decode('utf-8-sig')
     except UnicodeDecodeError:
         return raw.decode('latin-1')
 
@@ -126,12 +146,55 @@ def _parse(text: str) -> RawConfigParser:
     return parser
 
 
-def _compact_records_as_arrays(parser: RawConfigParser) -> None:
-    """Let canopen read a CompactSubObj record as the array of like entries it describes."""
+def _prepare(parser: RawConfigParser, text: str) -> List[Tuple[str, str]]:
+    """Change what canopen would misread or refuse; return what was left out, and why.
+
+    A CompactSubObj record becomes the array of like entries it describes; type definitions
+    (DEFTYPE, DEFSTRUCT: canopen fails on their entries) go, as do commissioning values that
+    are not numbers (canopen refuses the whole file for an empty ``Baudrate``).
+    """
+    left_out = []
     for section in parser.sections():
-        if (SECTION_OF_OBJECT.match(section) and parser.has_option(section, 'CompactSubObj')
-                and int(parser.get(section, 'ObjectType', fallback='0x7'), 0) == RECORD):
+        if not OBJECT_SECTION.match(section):
+            continue
+        object_type = _number(parser, section, 'ObjectType', text, VAR)
+        if object_type in TYPE_DEFINITIONS:
+            for sub in [s for s in parser.sections() if s.upper().startswith(section.upper())]:
+                parser.remove_section(sub)
+        elif (object_type == RECORD and parser.has_option(section, 'CompactSubObj')
+              and _number(parser, section, 'CompactSubObj', text, 0)):
             parser.set(section, 'ObjectType', f'0x{ARRAY:X}')
+    for section in parser.sections():
+        if section.casefold() == COMMISSIONING.casefold():
+            for option in ('NodeID', 'Baudrate'):
+                value = parser.get(section, option, fallback=None)
+                if value is not None and not _is_integer(value):
+                    parser.remove_option(section, option)
+                    left_out.append((f'[{section}] {option}', f'{value!r} is not a number: '
+                                                              'ignored'))
+    return left_out
+
+
+def _number(parser: RawConfigParser, section: str, option: str, text: str,
+            missing: int) -> int:
+    """Return an option that must be a number; raise :class:`EdsError` with the line if not."""
+    value = parser.get(section, option, fallback=None)
+    if value is None:
+        return missing
+    try:
+        return int(value, 0)
+    except ValueError:
+        line = _line_of_section(text, section)
+        raise EdsError(f'at line {line}: [{section}] {option}={value!r} is not a number') \
+            from None
+
+
+def _is_integer(value: str) -> bool:
+    try:
+        int(value, 0)
+    except ValueError:
+        return False
+    return True
 
 
 def _describe(text: str, error: Exception) -> str:
@@ -173,26 +236,69 @@ def _variables(dictionary: ObjectDictionary) -> Iterator[ODVariable]:
             yield from obj.subindices.values()
 
 
-def _signed_from_twos_complement(variable: ODVariable) -> None:
-    bits = SIGNED_BITS.get(variable.data_type)
+def _values_as_written(variable: ODVariable, node_id: Optional[int]) -> List[Tuple[str, str]]:
+    """Read DefaultValue and ParameterValue as vendors write them; return what cannot be.
+
+    canopen reads a signed type's two's-complement hex as unsigned, leaves ``$NODEID`` alone,
+    ``0100`` (decimal with a leading zero) and any number it cannot read without a value, and
+    takes values its type cannot hold.
+    """
+    bits, signed = INTEGER_BITS.get(variable.data_type, (None, False))
     if bits is None:
-        return
-    for raw, cooked in (('default_raw', 'default'), ('value_raw', 'value')):
-        text = (getattr(variable, raw, None) or '').strip().lower()
+        return []
+    left_out = []
+    for raw_name, cooked, keyword in (('default_raw', 'default', 'DefaultValue'),
+                                      ('value_raw', 'value', 'ParameterValue')):
+        raw = getattr(variable, raw_name, None)
+        if raw is None or not raw.strip():
+            continue
         value = getattr(variable, cooked)
-        if (text.startswith('0x') and isinstance(value, int)
-                and 1 << (bits - 1) <= value < 1 << bits):
-            setattr(variable, cooked, value - (1 << bits))
+        if value is None:
+            try:
+                value = _integer(raw, node_id)
+            except ValueError:
+                left_out.append((variable.qualname, f'{keyword} {raw.strip()!r} is not a '
+                                                    'number: left without a value'))
+                continue
+        hex_written = raw.strip().lower().startswith('0x')
+        if signed and hex_written and 1 << (bits - 1) <= value < 1 << bits:
+            value -= 1 << bits  # two's complement
+        low = -(1 << (bits - 1)) if signed else 0
+        if not low <= value < low + (1 << bits):
+            left_out.append((variable.qualname, f'{keyword} {raw.strip()!r} does not fit its '
+                                                f'type: left without a value'))
+            value = None
+        setattr(variable, cooked, value)
+    return left_out
 
 
-def _compact_count(array: ODArray, parser: RawConfigParser) -> None:
+def _integer(raw: str, node_id: Optional[int]) -> int:
+    """Return a CiA 306 integer: hex or decimal terms and ``$NODEID`` added up."""
+    total = 0
+    for term in raw.replace(' ', '').split('+'):
+        if term.upper() == '$NODEID':
+            if node_id is None:
+                raise ValueError('no node id')
+            total += node_id
+        elif re.fullmatch(r'-?0[0-9]+', term):
+            total += int(term, 10)
+        else:
+            total += int(term, 0)
+    return total
+
+
+def _compact_count(array: ODArray, parser: RawConfigParser, section: Optional[str],
+                   text: str) -> None:
     """Give a CompactSubObj array its sub-index 0: the number of entries, N."""
-    section = f'{array.index:04X}'
-    if not parser.has_option(section, 'CompactSubObj'):
+    if section is None or not parser.has_option(section, 'CompactSubObj'):
         return
+    count = _number(parser, section, 'CompactSubObj', text, 0)
+    if not 0 <= count <= 0xFE:
+        raise EdsError(f'at line {_line_of_section(text, section)}: [{section}] '
+                       f'CompactSubObj={count} is out of range: allowed 0..254')
     number = array.subindices[0]
     number.access_type = 'ro'
-    number.default = int(parser.get(section, 'CompactSubObj'), 0)
+    number.default = count
 
 
 def _skipped(messages: List[str]) -> List[Tuple[str, str]]:
