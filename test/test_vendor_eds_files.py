@@ -486,3 +486,16 @@ def test_a_simulated_device_of_a_file_without_heartbeat_or_pdo_mapping_starts(
     gateway = make_gateway(simulation__devices=[NODE], simulation__eds=path)
     answer = gateway.call('sdo_read', node_id=NODE, index=0x1000)
     assert answer.success and bytes(answer.data) == bytes([0x92, 0x01, 0x02, 0x00]), answer
+
+
+def test_a_dcf_s_values_of_a_compact_array_are_answered_by_the_simulated_device(
+        make_gateway, tmp_path):
+    path = quirk_file(tmp_path, section('6300', [
+        'ParameterName=Outputs', 'ObjectType=0x8', 'DataType=0x0002', 'AccessType=rw',
+        'DefaultValue=0x0', 'CompactSubObj=3']),
+        section('6300Value', ['NrOfEntries=2', '1=0x11', '3=0xFF']), name='drive.dcf')
+    gateway = make_gateway(simulation__devices=[NODE], simulation__eds=path)
+    answers = [gateway.call('sdo_read', node_id=NODE, index=0x6300, subindex=sub)
+               for sub in range(4)]
+    assert [bytes(answer.data) for answer in answers] == [b'\x03', b'\x11', b'\x00', b'\xff'], \
+        [answer.message for answer in answers]

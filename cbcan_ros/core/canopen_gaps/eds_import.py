@@ -26,6 +26,8 @@ closed by :func:`import_dictionary` and listed in docs/library_gaps.md:
 7. Type definitions (DEFTYPE, DEFSTRUCT sections with entries) and a DCF commissioning value
    that is not a number (an empty ``Baudrate``) make canopen refuse the whole file: the
    definitions are left out, the value ignored and said.
+8. canopen ignores a compact array's ``[xxxxValue]`` section, where a DCF gives its entries'
+   values; they are read here.
 """
 
 from configparser import Error as ParserError
@@ -125,6 +127,8 @@ def import_dictionary(path: str, node_id: Optional[int]) -> ImportedDictionary:
     for obj in dictionary.values():
         if isinstance(obj, ODArray):
             _compact_count(obj, parser, sections.get(f'{obj.index:04X}'), text)
+            skipped += _compact_values(obj, parser, sections.get(f'{obj.index:04X}VALUE'),
+                                       node_id)
     return ImportedDictionary(dictionary, skipped)
 
 
@@ -299,6 +303,32 @@ def _compact_count(array: ODArray, parser: RawConfigParser, section: Optional[st
     number = array.subindices[0]
     number.access_type = 'ro'
     number.default = count
+
+
+def _compact_values(array: ODArray, parser: RawConfigParser, section: Optional[str],
+                    node_id: Optional[int]) -> List[Tuple[str, str]]:
+    """Give a compact array's entries the values of its ``[xxxxValue]`` section (a DCF's).
+
+    canopen reads the names of a compact array's entries (``[xxxxName]``) but not their
+    values; return what of them cannot be read.
+    """
+    if section is None or 1 not in array.subindices:
+        return []
+    left_out = []
+    for option, raw in parser.items(section):
+        if option.casefold() == 'nrofentries':
+            continue
+        try:
+            subindex = int(option, 0)
+        except ValueError:
+            left_out.append((f'[{section}] {option}', 'not a sub-index: ignored'))
+            continue
+        entry = array[subindex]
+        entry.value_raw, entry.value = raw, None
+        left_out += _values_as_written(entry, node_id)
+        if subindex not in array.subindices:
+            array.add_member(entry)
+    return left_out
 
 
 def _skipped(messages: List[str]) -> List[Tuple[str, str]]:
