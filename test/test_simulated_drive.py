@@ -412,7 +412,8 @@ def test_heartbeat_loss_brings_the_abort_connection_option(axis, bus, option, st
 
 
 def test_pdo_driven_control(axis, bus):
-    axis.drive.configure_pdos([PdoConfig('rpdo', 1, ((0x6040, 0), (0x60FF, 0)))])
+    axis.drive.configure_pdos([PdoConfig('rpdo', 1, ((0x6040, 0), (0x60FF, 0))),
+                               PdoConfig('tpdo', 1, ((0x6041, 0),))])
     axis.set('mode', CSV)
     assert axis.gateway.call('nmt_command', node_id=axis.node_id, command=1).success
     wait_until(lambda: axis.drive.state == 5, WAIT, 'the drive operational')
@@ -421,6 +422,9 @@ def test_pdo_driven_control(axis, bus):
                              data=struct.pack('<Hi', controlword, velocity)))
     axis.wait_for('velocity_actual', lambda v: v == 4000, 'moving on RPDOs')
     assert axis.in_state('OPERATION_ENABLED')
+    # The statusword goes out in the event-driven TPDO whenever it changes.
+    next_frame(bus, 0x180 + axis.node_id, WAIT,
+               where=lambda data: shows('OPERATION_ENABLED', struct.unpack('<H', data)[0]))
 
 
 def test_reset_node_powers_the_drive_up_again(axis):

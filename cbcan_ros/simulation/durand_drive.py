@@ -125,6 +125,7 @@ class DurandDrive(DurandDevice):
 
     def inject_fault(self, error_code: int) -> None:
         """Raise a fault: fault reaction, then FAULT; ``error_code`` in 0x603F and an EMCY."""
+        self._started()
         with self._lock:
             self._fault(error_code)
             self._publish()
