@@ -286,16 +286,16 @@ def gateway(make_gateway):
 
 @pytest.fixture
 def start_durand():
-    """Return ``start_durand(node_id, **options)``: a started durand device.
+    """Return ``start_durand(node_id, kind=DurandDevice, **options)``: a started durand device.
 
-    durand is the independent device stack (``DurandDevice`` and its options); every device
-    the factory started is stopped after the test.
+    durand is the independent device stack (``DurandDevice`` and its options; ``kind`` may be
+    a subclass, such as the drive); every device the factory started is stopped after the test.
     """
     from cbcan_ros.simulation.durand_device import DurandDevice
     started = []
 
-    def factory(node_id: int, **options):
-        device = DurandDevice(node_id, **options)
+    def factory(node_id: int, kind=DurandDevice, **options):
+        device = kind(node_id, **options)
         device.start()
         started.append(device)
         return device
