@@ -390,8 +390,11 @@ def test_diagnostic_aggregator_example_names_what_the_gateway_publishes(gateway,
 
 # The PDO worked example's drive objects, and the objects of make run's simulated node 5 that
 # take their place: TPDO 1 maps 0x2001 and 0x2003, RPDO 1 0x2000 and 0x2001.
+# The target the example sends becomes a value no other block writes to node 5's 0x2001 (the
+# README's pdo-write of 300 ran first once, and its echo passed for the example's own).
+SENT = 1717
 DRIVE_OBJECTS = {'0x6041': '0x2001', '0x6064': '0x2003', '0x6040': '0x2000', '0x607A': '0x2001',
-                 'value=20000.0': 'value=300.0'}
+                 'value=20000.0': f'value={SENT}.0'}
 
 
 def test_pdo_worked_example_runs_with_the_simulated_objects(gateway, cli_client, tmp_path):
@@ -411,8 +414,9 @@ def test_pdo_worked_example_runs_with_the_simulated_objects(gateway, cli_client,
     reader = threading.Thread(target=lambda: printed.extend(process.stdout), daemon=True)
     reader.start()
     try:
-        # 0x2001, written 300 through RPDO 1, comes back in TPDO 1 as the "statusword".
-        wait_until(lambda: any('statusword 0x012C, position -2' in line for line in printed),
+        # 0x2001, written through RPDO 1, comes back in TPDO 1 as the "statusword".
+        wait_until(lambda: any(f'statusword 0x{SENT:04X}, position -2' in line
+                               for line in printed),
                    SCRIPT_TIMEOUT, f'{blocks[0]} to print the value it sent; printed: {printed}')
         process.send_signal(signal.SIGINT)
         assert process.wait(SCRIPT_TIMEOUT) == 0, ''.join(printed)
