@@ -20,6 +20,8 @@ from . import abort_codes, eds, nmt
 from .bus import BusDown, BusStatus, BusSupervisor
 from .canopen_gaps.local_node import without_heartbeat_producer
 from .canopen_gaps.sdo_client import StrictSdoClient
+from .drive import DriveService
+from .drive_status import DriveSettings
 from .emcy import EmcyMonitor
 from .lss_frames import is_all_waiting, probe_wait
 from .lss_master import LssMaster
@@ -64,6 +66,7 @@ class GatewayConfig:
     device_files: Dict[int, str] = field(default_factory=dict)  # node id: EDS/DCF path
     sync_period: float = 0.0
     sync_counter_overflow: int = 0
+    drives: DriveSettings = DriveSettings()  # its nodes are watched and PDO-served as well
 
 
 @dataclass(frozen=True)
@@ -136,18 +139,25 @@ class Gateway:
         self.bus = BusSupervisor(self.network, self._open_bus,
                                  f'{config.interface}:{config.channel}')
         self.dictionary = own_dictionary()
+        drives = config.drives.node_ids
         self.monitor = nmt.HeartbeatMonitor(self.network, config.heartbeat_timeout,
-                                            config.expected_nodes)
+                                            sorted({*config.expected_nodes, *drives}))
         self._guarding = nmt.NodeGuarding(self.network, config.guarded_nodes,
                                           config.guard_period)
         self.emcy = EmcyMonitor(self.network)
         self.sync = SyncProducer(self.bus, self.network, config.sync_period,
                                  config.sync_counter_overflow)
-        self.pdo = PdoService(self.network, config.pdo_nodes, self.sdo_batch,
+        pdo_nodes = {*config.pdo_nodes, *drives}
+        self.pdo = PdoService(self.network, sorted(pdo_nodes), self.sdo_batch,
                               config.write_protection, self.sync,
                               {node_id: eds.load(path, node_id) for node_id, path
-                               in config.device_files.items() if node_id in config.pdo_nodes},
+                               in config.device_files.items() if node_id in pdo_nodes},
                               config.pdo_configure)
+        self.drives = DriveService(self.network, config.drives, self.monitor, self.pdo,
+                                   lambda accesses, timeout: self._batch(accesses, timeout,
+                                                                         True),
+                                   lambda: self.sync.producing,
+                                   config.write_protection)
         self._deadlines = Deadlines()
         self.lss = LssMaster(
             self.network, self._deadlines,
@@ -159,6 +169,7 @@ class Gateway:
         self._channels: Dict[int, SdoChannel] = {}
         self._lock = threading.Lock()
         self._closing = False
+        self._stopping_drives = False
         self.bus.add_listener(self._on_bus_change)
 
     @property
@@ -178,6 +189,7 @@ class Gateway:
         self.emcy.start()
         self.sync.start()
         self.pdo.start()
+        self.drives.start()
         self._guarding.start()
         self.lss.start()
         self.bus.start()
@@ -192,6 +204,12 @@ class Gateway:
             if self._closing:
                 return
             self._closing = True
+            self._stopping_drives = True
+        # The drives' stop commands go first, while the bus is open; callers' requests are
+        # refused from here on, the drive service's are taken until its stops are sent.
+        self.drives.stop()
+        with self._lock:
+            self._stopping_drives = False
             channels = list(self._channels.values())
         self.pdo.stop()
         self.sync.stop()
@@ -224,6 +242,11 @@ class Gateway:
         The timeout bounds the whole batch. Each device's part waits in that device's queue
         as one request. A batch of more than ``sdo.MAX_BATCH`` accesses is refused whole.
         """
+        return self._batch(accesses, timeout, False)
+
+    def _batch(self, accesses: Sequence[Access], timeout: float,
+               drive_stop: bool) -> 'Future[List[SdoResult]]':
+        """Run a batch; ``drive_stop``: the drive service's, taken while it stops the drives."""
         refused = batch_refusal(accesses, timeout)
         if refused is not None:
             return resolved(one_each(refused, len(accesses)))
@@ -240,7 +263,8 @@ class Gateway:
         done: Future = Future()
         parts = {node_id: self._channel_for(node_id, len(positions), lambda channel, p=positions:
                                             channel.batch([accesses[i] for i in p],
-                                                          timeout or self.config.sdo_timeout))
+                                                          timeout or self.config.sdo_timeout),
+                                            drive_stop)
                  for node_id, positions in per_device.items()}
         remaining = [len(parts)]
         lock = threading.Lock()
@@ -313,14 +337,19 @@ class Gateway:
         return self._channel_for(access.node_id, None, lambda channel: channel.single(
             access, timeout or self.config.sdo_timeout))
 
-    def _channel_for(self, node_id: int, count: Optional[int], request) -> Future:
-        """Hand a request to the device's channel; ``count`` accesses (None: one)."""
+    def _channel_for(self, node_id: int, count: Optional[int], request,
+                     drive_stop: bool = False) -> Future:
+        """Hand a request to the device's channel; ``count`` accesses (None: one).
+
+        ``drive_stop``: the drive service's request, which may still go while it sends its
+        stops at the start of shutdown.
+        """
         def refused(message: str) -> Future:
             return resolved(one_each(SdoResult.failed(message), count))
 
         status = self.bus.status
         with self._lock:
-            if self._closing:
+            if self._closing and not (drive_stop and self._stopping_drives):
                 return refused(f'{SHUTTING_DOWN}; nothing was sent')
             if not status.up:
                 return refused(f'the CAN bus is down: {status.reason}; nothing was sent')

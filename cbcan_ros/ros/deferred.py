@@ -16,12 +16,11 @@ and an answer never waits for the executor. rclcpp has this as deferred response
 no such API yet: the wrapping is ``rclpy_gaps.intercept_responses``.
 """
 
-import asyncio
 from concurrent.futures import Future
 import logging
 import threading
 import time
-from typing import Callable, Coroutine, Dict, Optional, Tuple
+from typing import Callable, Dict, Tuple
 
 from .rclpy_gaps import intercept_responses
 
@@ -134,45 +133,3 @@ class DeferredService:
                              'this kind are not logged', self._service.srv_name, kind, error)
         finally:
             self._calls.end()
-
-
-class CoroutineRunner:
-    """An asyncio event loop on a thread of its own, for calls that chain several steps.
-
-    ``submit`` returns a ``concurrent.futures.Future``, so such a call is answered through a
-    :class:`DeferredService` like any other, and the ROS executor never runs coroutines.
-    """
-
-    def __init__(self, name: str):
-        self._loop = asyncio.new_event_loop()
-        self._closed = False
-        self._lock = threading.Lock()
-        self._thread = threading.Thread(target=self._loop.run_forever, name=name, daemon=True)
-        self._thread.start()
-
-    def submit(self, coroutine: Coroutine) -> Optional[Future]:
-        """Run ``coroutine`` on the loop; return the future of its result, None once closed."""
-        with self._lock:
-            if self._closed:
-                coroutine.close()
-                return None
-            return asyncio.run_coroutine_threadsafe(coroutine, self._loop)
-
-    def close(self) -> None:
-        """Stop the loop (after the calls on it were answered) and end its thread."""
-        with self._lock:
-            if self._closed:
-                return
-            self._closed = True
-
-        async def cancel_all() -> None:
-            tasks = asyncio.all_tasks() - {asyncio.current_task()}
-            for task in tasks:
-                task.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
-
-        # Each cancelled coroutine still gives its answer (see its CancelledError handling).
-        asyncio.run_coroutine_threadsafe(cancel_all(), self._loop).result()
-        self._loop.call_soon_threadsafe(self._loop.stop)
-        self._thread.join()
-        self._loop.close()

@@ -23,6 +23,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from ..core.coroutine_runner import CoroutineRunner
 from ..core.gateway import Gateway, SHUTTING_DOWN
 from ..core.lss import Identity, LssResult
 from ..core.nmt import state_name
@@ -44,7 +45,7 @@ from ..srv import (
     SdoWrite,
 )
 from .config import NodeParameters
-from .deferred import CallsInProgress, CoroutineRunner, DeferredService
+from .deferred import CallsInProgress, DeferredService
 from .diagnostics import Diagnostics
 from .emcy import EmcyPublisher
 from .pdo import check_request, entry_values, PdoTopics

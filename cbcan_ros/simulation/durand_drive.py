@@ -108,6 +108,7 @@ class DurandDrive(DurandDevice):
         self._set_point_acknowledged = False
         self._homing: Optional[Homing] = None
         self._master = HeartbeatConsumer(self._on_heartbeat_lost)
+        self._pdo_controlword: Optional[list] = None  # set while an RPDO is being written
 
     @property
     def drive_state(self) -> str:
@@ -159,7 +160,9 @@ class DurandDrive(DurandDevice):
     def _build_dictionary(self, od) -> None:
         super()._build_dictionary(od)
         add_drive_objects(od, self.modes)
-        self._on_write(od, CONTROLWORD, 0, self._on_controlword)
+        self._on_write(od, CONTROLWORD, 0, self._on_controlword_written)
+        for rpdo in self.node.rpdo:
+            rpdo._write_data = self._whole_frame(rpdo._write_data)
         self._on_write(od, MODE, 0, self._on_mode)
         for index in (TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE):
             # "Target reached" compares with them: a new one shows at once.
@@ -176,6 +179,28 @@ class DurandDrive(DurandDevice):
                 LOGGER.exception('simulated drive %d failed on 0x%04X:%d = %r',
                                  self.node_id, index, subindex, value)
         od.update_callbacks[(index, subindex)].add(logged)
+
+    def _whole_frame(self, write_data: Callable[[bytes], None]) -> Callable[[bytes], None]:
+        """Wrap durand's RPDO write so that the controlword acts after the whole frame.
+
+        durand writes a frame's objects one by one; a drive takes the frame whole, so a
+        controlword's new set-point takes the target position that came in the same frame.
+        """
+        def write(frame: bytes) -> None:
+            self._pdo_controlword = []
+            try:
+                write_data(frame)
+            finally:
+                written, self._pdo_controlword = self._pdo_controlword, None
+                for controlword in written:
+                    self._on_controlword(controlword)
+        return write
+
+    def _on_controlword_written(self, controlword: int) -> None:
+        if self._pdo_controlword is not None:
+            self._pdo_controlword.append(controlword)
+        else:
+            self._on_controlword(controlword)
 
     def _boot(self, clear: range, durand_reset: Callable[[], None]) -> None:
         super()._boot(clear, durand_reset)

@@ -1,0 +1,506 @@
+"""CiA 402 drives run by the gateway: state from every statusword, commands, targets, safety.
+
+Each drive of ``drives.nodes`` is followed from the frames it sends: its TPDOs (statusword,
+mode display, actual values), or SDO reads of what no TPDO maps, once a feedback cycle.
+Every statusword updates the drive's state at once, in the thread that received it, and wakes
+what waits on it: a command (``drive_commands``) runs as a coroutine that sends one
+controlword, awaits the statusword that shows its effect and sends the next, never sleeping
+or polling. Targets from a caller go out at once, from the caller's thread.
+
+Safety lives here, below ROS:
+
+- enabling, and every change of mode, first sets the mode's target to hold the axis
+  (``drive_commands``);
+- in the streaming modes a drive whose targets stop for ``command_timeout`` is halted;
+- the gateway's shutdown (and a managed node's deactivation) sends ``on_shutdown`` to every
+  powered drive before the bus closes;
+- with a gateway heartbeat, each drive is told to watch it (0x1016) whenever it is first heard
+  and after every boot, so it stops by itself when the gateway dies;
+- a drive that faults, stops heartbeating or boots refuses targets until a fresh ``enable``.
+"""
+
+import asyncio
+from concurrent.futures import Future
+from dataclasses import replace
+import logging
+import threading
+import time
+from typing import Callable, Dict, List, Optional, Tuple
+
+from . import abort_codes, cia402
+from .bus import prompt
+from .coroutine_runner import CoroutineRunner
+from .drive_checks import (
+    command_problem,
+    ENABLED_COMMANDS,
+    integer_problem,
+    NOTHING_SENT,
+    request_problem,
+    state_problem,
+    value_problem,
+)
+from .drive_commands import DriveCommands
+from .drive_objects import DriveObjects, FEEDBACK
+from .drive_safety import command_timed_out, stop_motion, watch_the_gateway
+from .drive_status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed
+from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED
+from .pdo_mapping import ReceivedPdo
+from .request_queue import resolved
+from .sdo import check_node_id
+
+LOGGER = logging.getLogger(__name__)
+
+SHUTTING_DOWN = 'the gateway is shutting down'
+
+
+# How long a command may take unless its caller says: every drive takes each transition in
+# milliseconds; homing runs for as long as the axis travels.
+DEFAULT_TIMEOUT = 2.0
+HOMING_TIMEOUT = 60.0
+# A drive's initial read that failed is tried again on a later heartbeat, at most this often.
+REREAD_INTERVAL = 1.0
+
+# What is read of a drive when it is first heard and after each boot: its feedback, its
+# modes, and the commanded values a PDO frame repeats.
+INITIAL_READS = (*FEEDBACK, cia402.ERROR_CODE, cia402.SUPPORTED_MODES, cia402.CONTROLWORD,
+                 cia402.MODE, cia402.TARGET_POSITION, cia402.TARGET_VELOCITY,
+                 cia402.TARGET_TORQUE, cia402.PROFILE_VELOCITY_OBJECT)
+COMMANDED_READS = (cia402.CONTROLWORD, cia402.MODE, cia402.TARGET_POSITION,
+                   cia402.TARGET_VELOCITY, cia402.TARGET_TORQUE, cia402.PROFILE_VELOCITY_OBJECT)
+
+
+class DriveService:
+    """The drives of ``settings.node_ids`` on the gateway's bus.
+
+    ``network`` is the gateway's canopen network, ``monitor`` its heartbeat monitor, ``pdo``
+    its PDO service, ``sdo_batch`` its SDO batch call, ``sync_producing()`` whether it
+    produces SYNC, ``write_protection`` its write rules.
+    """
+
+    def __init__(self, network, settings: DriveSettings, monitor, pdo, sdo_batch,
+                 sync_producing: Callable[[], bool], write_protection):
+        self.settings = settings
+        self._network = network
+        self._monitor = monitor
+        self._sdo_batch = sdo_batch
+        self._protection = write_protection
+        self._lock = threading.RLock()
+        self._drives = {
+            node_id: DriveRecord(node_id, DriveObjects(node_id, pdo, sdo_batch, sync_producing),
+                            DriveStatus(node_id))
+            for node_id in sorted(set(settings.node_ids))}
+        self._listeners: List[Callable[[DriveStatus], None]] = []
+        self._cycle_listeners: List[Callable[[], None]] = []
+        self._runner = CoroutineRunner('drives')
+        self._commands = DriveCommands(self)
+        self._closing = False
+        self._stop_cycle = threading.Event()
+        self._cycle = threading.Thread(target=self._run_cycles, name='drive cycle',
+                                       daemon=True)
+        if self._drives:
+            pdo.add_listener(self._on_pdo)
+            monitor.add_listener(self._on_node_states)
+
+    @property
+    def node_ids(self) -> List[int]:
+        """Return the drives run."""
+        return list(self._drives)
+
+    def add_listener(self, listener: Callable[[DriveStatus], None]) -> None:
+        """Call ``listener(status)`` on every change of a drive's state, mode, fault or halt."""
+        self._listeners.append(listener)
+
+    def add_cycle_listener(self, listener: Callable[[], None]) -> None:
+        """Call ``listener()`` once every feedback cycle (the joint states' rhythm)."""
+        self._cycle_listeners.append(listener)
+
+    def status(self, node_id: int) -> DriveStatus:
+        """Return what is known of drive ``node_id`` now."""
+        with self._lock:
+            return self._drives[node_id].status
+
+    def statuses(self) -> List[DriveStatus]:
+        """Return every drive's status, by node id."""
+        with self._lock:
+            return [drive.status for drive in self._drives.values()]
+
+    def command_timeouts(self, node_id: int) -> int:
+        """Return how often the command timeout halted drive ``node_id``."""
+        with self._lock:
+            return self._drives[node_id].timeouts
+
+    def start(self) -> None:
+        """Listen to the drives' heartbeats and start the feedback cycle."""
+        for node_id in self._drives:
+            self._network.subscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
+        if self._drives:
+            self._cycle.start()
+
+    def stop(self) -> None:
+        """Answer every command in progress, then send ``on_shutdown`` to every powered drive.
+
+        Called first in the gateway's shutdown, while frames may still go out. Waits at most
+        ``SHUTDOWN_WAIT`` for the drives to take the stop.
+        """
+        with self._lock:
+            if self._closing:
+                return
+            self._closing = True
+        self._stop_cycle.set()
+        self._runner.close()
+        stop_motion(self._drives.values(), self.settings, self._lock, SHUTTING_DOWN)
+        for node_id in self._drives:
+            self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
+
+    def pause(self, reason: str) -> None:
+        """Stop every powered drive as at shutdown, and end what runs (a node deactivated)."""
+        for drive in self._drives.values():
+            self._runner.call_soon(lambda d=drive: self._commands.cancel(d, reason))
+        stop_motion(self._drives.values(), self.settings, self._lock, reason)
+
+    def command(self, node_id: int, command: str, mode: int = 0,
+                timeout: float = 0.0) -> 'Future[DriveResult]':
+        """Run ``command`` on drive ``node_id``; resolves when its statusword shows the result.
+
+        A command replaces one still running on the same drive (answered "replaced"). Never
+        raises; a request that cannot be run is answered at once, nothing sent.
+        """
+        refused = self._command_refusal(node_id, command, mode, timeout)
+        if refused is not None:
+            return resolved(refused)
+        drive = self._drives[node_id]
+        limit = timeout or (HOMING_TIMEOUT if command == 'home' else DEFAULT_TIMEOUT)
+        return self._submit(drive, self._commands.run(drive, command, mode, limit))
+
+    def move(self, node_id: int, position: int, relative: bool = False, velocity: int = 0,
+             on_feedback: Optional[Callable[[DriveStatus], None]] = None
+             ) -> Tuple['Future[DriveResult]', Callable[[], None]]:
+        """Move drive ``node_id`` in profile position; return (result future, cancel()).
+
+        Succeeds on the drive's target reached at the goal; ``cancel()`` halts the drive and
+        answers where it stopped. A new move or target for the drive replaces this one.
+        """
+        refused = self._drive_refusal(node_id, enabled=True)
+        if refused is None:
+            problem = (integer_problem('position', position, 32)
+                       or integer_problem('velocity', velocity, 32, unsigned=True))
+            refused = problem and failed(self.status(node_id), f'{problem}; {NOTHING_SENT}')
+        if refused:
+            return resolved(refused), lambda: None
+        drive = self._drives[node_id]
+        future = self._submit(drive, self._commands.move(drive, position, relative, velocity,
+                                                         on_feedback))
+        return future, lambda: self._runner.call_soon(
+            lambda: self._commands.cancel(drive, 'cancelled', halt=True))
+
+    def target(self, node_id: int, value: float) -> DriveResult:
+        """Send ``value`` as the target of the drive's present mode, in the drive's units.
+
+        Position in PP (a new set-point applied at once) and CSP, velocity in PV and CSV,
+        torque in CST. Restarts the command timeout; resumes a drive it halted. Refused
+        (nothing sent) when the drive is not enabled, faulted, halted by a halt command, or
+        the value does not fit.
+        """
+        refused = self._drive_refusal(node_id, enabled=True)
+        if refused is not None:
+            return refused
+        drive = self._drives[node_id]
+        with self._lock:
+            status = drive.status
+            index = cia402.TARGET_OF_MODE.get(status.mode)
+            if index is None:
+                return failed(status, f'node {node_id} is in {cia402.mode_name(status.mode)}, '
+                                       f'which takes no target; nothing was sent')
+            if drive.halted_by == 'command':
+                return failed(status, f'node {node_id} was halted by a halt command: call '
+                                       f'resume first; nothing was sent')
+            refusal = self._protection.refuses_write(node_id, index)
+            if refusal:
+                return failed(status, refusal, abort_codes.LOCAL_CONTROL)
+            bits = 32 if index != cia402.TARGET_TORQUE else 16
+            problem = value_problem('target', value, bits)
+            if problem:
+                return failed(status, f'{problem}; {NOTHING_SENT}')
+            drive.last_target = time.monotonic()
+        if status.mode == cia402.PROFILE_POSITION:
+            self._runner.call_soon(lambda: self._commands.set_point(drive, round(value)))
+            return DriveResult(True, 'set-point handed to the drive', status)
+        values = {index: round(value)}
+        with self._lock:
+            if drive.halted_by:  # by the command timeout or a cancelled move: a target resumes
+                drive.halted_by = ''
+                drive.controlword &= ~cia402.HALT
+                values[cia402.CONTROLWORD] = drive.controlword
+                drive.status = replace(drive.status, halted=False)
+        sent = drive.objects.write(values, self.settings.feedback_period * 10 or 0.5)
+        sent.add_done_callback(lambda done: self._log_failed_target(node_id, done))
+        return DriveResult(True, 'sent', status)
+
+    # Used by the command sequences (drive_commands), on the drives' event loop.
+
+    def send(self, drive: DriveRecord, values: Dict[int, int], timeout: float) -> 'Future':
+        """Send ``values`` to ``drive`` (the controlword kept as the drive's commanded one)."""
+        with self._lock:
+            if cia402.CONTROLWORD in values:
+                drive.controlword = values[cia402.CONTROLWORD]
+        return drive.objects.write(values, timeout)
+
+    def when_updated(self, drive: DriveRecord, wake: Callable[[], None]) -> None:
+        """Call ``wake()`` on the drives' loop at the next statusword or loss of ``drive``."""
+        with self._lock:
+            drive.waiters.append(wake)
+
+    def request_feedback(self, drive: DriveRecord) -> None:
+        """Read by SDO at once what no TPDO brings (after an SDO controlword, say)."""
+        self._poll(drive)
+
+    def set_halted(self, drive: DriveRecord, by: str) -> None:
+        """Record who halted the drive ('' = nobody), and show it."""
+        with self._lock:
+            drive.halted_by = by
+            changed = drive.status.halted != bool(by)
+            drive.status = replace(drive.status, halted=bool(by))
+            status = drive.status
+        if changed:
+            self._notify(status)
+
+    def set_enabled(self, drive: DriveRecord, enabled: bool) -> None:
+        """Record that an enable succeeded (targets taken) or that a fresh one is needed."""
+        with self._lock:
+            drive.status = replace(drive.status, needs_enable=not enabled)
+            drive.last_target = time.monotonic()
+
+    def take(self, drive: DriveRecord, values: Dict[int, int]) -> None:
+        """Take values read by SDO as the drive's feedback."""
+        self._apply(drive, values, time.monotonic())
+
+    def controlword(self, drive: DriveRecord) -> int:
+        """Return the controlword last commanded to ``drive``."""
+        with self._lock:
+            return drive.controlword
+
+    def updates(self, drive: DriveRecord) -> int:
+        """Return how many statuswords of ``drive`` were taken so far."""
+        with self._lock:
+            return drive.updates
+
+    def heard(self, drive: DriveRecord) -> bool:
+        """Return whether ``drive`` is heartbeating now."""
+        with self._lock:
+            return drive.heard
+
+    # Frames and node states, from the bus thread.
+
+    def _on_pdo(self, received: ReceivedPdo) -> None:
+        drive = self._drives.get(received.mapping.node_id)
+        if drive is None:
+            return
+        values = {decoded.entry.index: int(decoded.value) for decoded in received.entries
+                  if decoded.entry.index in FEEDBACK and decoded.entry.subindex == 0}
+        if values:
+            self._apply(drive, values, received.timestamp)
+
+    @prompt
+    def _on_heartbeat(self, can_id: int, data: bytearray, _timestamp: float) -> None:
+        if not data:
+            return
+        drive = self._drives[can_id - HEARTBEAT_COB_BASE]
+        boot = data[0] == BOOT_UP
+        with self._lock:
+            first = not drive.heard
+            drive.heard = True
+            retry = (drive.read_done < 0 and
+                     time.monotonic() - drive.read_failed_at >= REREAD_INTERVAL)
+            if not (boot or first or retry):
+                return
+            drive.read_wanted += 1
+            request = drive.read_wanted
+            if boot:
+                drive.objects.forget()
+                drive.halted_by = ''
+                drive.status = replace(drive.status, needs_enable=True, halted=False)
+        if boot:
+            self._wake(drive)
+        self._runner.call_soon(lambda: self._runner.submit(self._initial_read(drive, request)))
+
+    def _on_node_states(self) -> None:
+        lost = []
+        with self._lock:
+            for drive in self._drives.values():
+                if drive.heard and self._monitor.status(drive.node_id).state == NOT_DETECTED:
+                    drive.heard = False
+                    drive.halted_by = ''
+                    drive.status = DriveStatus(drive.node_id,
+                                               supported_modes=drive.status.supported_modes,
+                                               position=drive.status.position)
+                    lost.append(drive)
+        for drive in lost:
+            LOGGER.warning('drive %d stopped heartbeating: state UNKNOWN, targets refused; it '
+                           'needs a fresh enable once it is heard again', drive.node_id)
+            self._notify(drive.status)
+            self._wake(drive)
+
+    def _apply(self, drive: DriveRecord, values: Dict[int, int], stamp: float) -> None:
+        """Take feedback values of ``drive``: update its status, wake what waits, tell."""
+        with self._lock:
+            old = drive.status
+            if not drive.heard:
+                return  # a frame after its heartbeat was lost: it is re-read when heard
+            statusword = values.get(cia402.STATUSWORD, old.statusword)
+            state = cia402.state_of(statusword) if cia402.STATUSWORD in values else old.state
+            new = replace(old, statusword=statusword, state=state,
+                          mode=values.get(cia402.MODE_DISPLAY, old.mode),
+                          position=values.get(cia402.POSITION_ACTUAL, old.position),
+                          velocity=values.get(cia402.VELOCITY_ACTUAL, old.velocity),
+                          torque=values.get(cia402.TORQUE_ACTUAL, old.torque),
+                          error_code=values.get(cia402.ERROR_CODE, old.error_code),
+                          received=stamp)
+            if new.faulted and not old.faulted:
+                new = replace(new, needs_enable=True)
+            drive.status = new
+            if cia402.STATUSWORD in values:
+                drive.updates += 1
+            changed = (old.state, old.mode, old.error_code, old.target_reached) != (
+                new.state, new.mode, new.error_code, new.target_reached)
+        if new.faulted and not old.faulted:
+            self._runner.call_soon(lambda: self._runner.submit(self._read_error(drive)))
+        if changed:
+            self._notify(new)
+        if cia402.STATUSWORD in values or changed:
+            self._wake(drive)
+
+    def _wake(self, drive: DriveRecord) -> None:
+        with self._lock:
+            waiters, drive.waiters = drive.waiters, []
+        for wake in waiters:
+            self._runner.call_soon(wake)
+
+    def _notify(self, status: DriveStatus) -> None:
+        for listener in self._listeners:
+            listener(status)
+
+    # The drives' loop: reads when heard, the error code of a fault.
+
+    async def _initial_read(self, drive: DriveRecord, request: int) -> None:
+        values = await asyncio.wrap_future(
+            drive.objects.read(INITIAL_READS, DEFAULT_TIMEOUT))
+        with self._lock:
+            if request != drive.read_wanted:
+                return  # it booted again meanwhile: a newer read follows
+            if cia402.STATUSWORD not in values:
+                drive.read_done = -request
+                drive.read_failed_at = time.monotonic()
+            else:
+                drive.read_done = request
+                drive.controlword = values.get(cia402.CONTROLWORD, 0)
+                drive.status = replace(drive.status, supported_modes=values.get(
+                    cia402.SUPPORTED_MODES, 0))
+        if cia402.STATUSWORD not in values:
+            LOGGER.warning('drive %d: its statusword could not be read; tried again on a '
+                           'later heartbeat', drive.node_id)
+            return
+        drive.objects.know({index: values[index] for index in COMMANDED_READS
+                            if index in values})
+        self._apply(drive, {index: values[index] for index in (*FEEDBACK, cia402.ERROR_CODE)
+                            if index in values}, time.monotonic())
+        await watch_the_gateway(self._sdo_batch, drive.node_id, self.settings)
+
+    async def _read_error(self, drive: DriveRecord) -> None:
+        values = await asyncio.wrap_future(drive.objects.read([cia402.ERROR_CODE],
+                                                              DEFAULT_TIMEOUT))
+        if cia402.ERROR_CODE in values:
+            self._apply(drive, {cia402.ERROR_CODE: values[cia402.ERROR_CODE]},
+                        time.monotonic())
+        status = self.status(drive.node_id)
+        LOGGER.error('drive %d FAULT: error code 0x%04X (%s); targets are refused until '
+                     'fault_reset and enable', drive.node_id, status.error_code, status.error)
+
+    # The feedback cycle: SDO reads of what no TPDO brings, the command timeout, listeners.
+
+    def _run_cycles(self) -> None:
+        period = self.settings.feedback_period
+        next_cycle = time.monotonic()
+        while not self._stop_cycle.is_set():
+            for drive in self._drives.values():
+                self._poll(drive)
+                word = command_timed_out(drive, self.settings, self._lock)
+                if word is not None:
+                    self._notify(self.status(drive.node_id))
+                    drive.objects.write({cia402.CONTROLWORD: word}, DEFAULT_TIMEOUT)
+            for listener in self._cycle_listeners:
+                try:
+                    listener()
+                except Exception:  # noqa: BLE001 - a failing listener must not end the cycle
+                    LOGGER.exception('a drive cycle listener failed')
+            next_cycle += period
+            now = time.monotonic()
+            if next_cycle < now:  # fell behind (a loaded machine): skip, do not catch up
+                next_cycle = now + period
+            self._stop_cycle.wait(next_cycle - now)
+
+    def _poll(self, drive: DriveRecord) -> None:
+        with self._lock:
+            if drive.polling or not drive.heard or drive.read_done <= 0 or self._closing:
+                return
+            missing = [index for index in FEEDBACK
+                       if index not in drive.objects.mapped_feedback()]
+            if not missing:
+                return
+            drive.polling = True
+
+        def done(future: Future) -> None:
+            with self._lock:
+                drive.polling = False
+            if future.result():
+                self._apply(drive, future.result(), time.monotonic())
+
+        drive.objects.read(missing, DEFAULT_TIMEOUT).add_done_callback(done)
+
+    # Checks, and the way out.
+
+    def _command_refusal(self, node_id: int, command: str, mode: int,
+                         timeout: float) -> Optional[DriveResult]:
+        """Return why a command cannot run (nothing is sent then), or None: the one check."""
+        problem = request_problem(command, mode, timeout)
+        if problem:
+            return self._refused(node_id, f'{problem}; {NOTHING_SENT}')
+        refused = self._drive_refusal(node_id, enabled=command in ENABLED_COMMANDS)
+        if refused is not None:
+            return refused
+        status = self.status(node_id)
+        problem = command_problem(status, command, mode)
+        return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
+
+    def _drive_refusal(self, node_id: int, enabled: bool) -> Optional[DriveResult]:
+        """Return why drive ``node_id`` takes no request now, or None."""
+        problem = check_node_id(node_id, '1..127', lowest=1)
+        if not problem and node_id not in self._drives:
+            problem = (f'node {node_id} is not a drive (parameter drives.nodes: '
+                       f'{self.node_ids or "none"})')
+        if problem:
+            return self._refused(node_id, f'{problem}; {NOTHING_SENT}')
+        with self._lock:
+            drive = self._drives[node_id]
+            status, heard, closing = drive.status, drive.heard, self._closing
+        refusal = self._protection.refuses_write(node_id, cia402.CONTROLWORD)
+        if refusal:
+            return failed(status, f'{refusal}; {NOTHING_SENT}', abort_codes.LOCAL_CONTROL)
+        problem = SHUTTING_DOWN if closing else state_problem(status, heard, enabled)
+        return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
+
+    def _refused(self, node_id: int, message: str) -> DriveResult:
+        drive = self._drives.get(node_id)
+        return failed(self.status(node_id) if drive else DriveStatus(node_id), message)
+
+    def _submit(self, drive: DriveRecord, coroutine) -> 'Future[DriveResult]':
+        future = self._runner.submit(coroutine)
+        if future is None:
+            return resolved(failed(self.status(drive.node_id),
+                                    f'{SHUTTING_DOWN}; nothing was sent'))
+        return future
+
+    def _log_failed_target(self, node_id: int, done: Future) -> None:
+        result = done.result()
+        if not result.success:
+            LOGGER.warning('drive %d: a target was not sent: %s', node_id, result.message)
+

@@ -1,0 +1,84 @@
+"""The checks of drive requests: what is refused before anything is sent, and the words why.
+
+:meth:`~.drive.DriveService.command`, ``move`` and ``target`` check a request here and only
+then route it; each problem names the field or the state that stops it.
+"""
+
+import math
+from typing import Optional
+
+from . import cia402
+from .drive_status import DriveStatus
+from .sdo import MAX_TIMEOUT
+
+COMMANDS = ('enable', 'disable', 'quick_stop', 'halt', 'resume', 'fault_reset', 'set_mode',
+            'home')
+# Commands that act on a drive in OPERATION_ENABLED only.
+ENABLED_COMMANDS = frozenset({'halt', 'resume', 'home'})
+MODES = tuple(cia402.MODE_NAMES)
+NOTHING_SENT = 'nothing was sent'
+
+
+def request_problem(command: str, mode: int, timeout: float) -> Optional[str]:
+    """Return what is wrong with a command request itself, or None."""
+    if command not in COMMANDS:
+        return f'command {command!r} is unknown: allowed {", ".join(COMMANDS)}'
+    if mode and mode not in MODES:
+        allowed = ', '.join(f'{code} {name}' for code, name in cia402.MODE_NAMES.items())
+        return f'mode {mode} is not a CiA 402 mode of operation: allowed 0 (keep), {allowed}'
+    if command == 'set_mode' and not mode:
+        return f'set_mode needs a mode: {", ".join(map(str, MODES))}'
+    if not (timeout == 0 or 0 < timeout <= MAX_TIMEOUT):
+        return (f'timeout {timeout} is out of range: allowed 0 (the default) or up to '
+                f'{MAX_TIMEOUT:g} s')
+    return None
+
+
+def state_problem(status: DriveStatus, heard: bool, enabled: bool) -> Optional[str]:
+    """Return why the drive takes no request now, or None.
+
+    ``enabled``: the request needs the drive in OPERATION_ENABLED after an enable of ours.
+    """
+    node_id = status.node_id
+    if not heard or status.state == cia402.UNKNOWN:
+        return (f'node {node_id} is not heard (no heartbeat or statusword yet): state '
+                f'UNKNOWN')
+    if enabled and status.faulted:
+        return (f'node {node_id} is in {status.state} (error 0x{status.error_code:04X} '
+                f'{status.error}): call fault_reset and enable')
+    if enabled and (status.state != cia402.OPERATION_ENABLED or status.needs_enable):
+        fresh = ' and needs a fresh enable' if status.needs_enable else ''
+        return f'node {node_id} is {status.state}{fresh}: call drive_command enable first'
+    return None
+
+
+def command_problem(status: DriveStatus, command: str, mode: int) -> Optional[str]:
+    """Return why ``command`` with ``mode`` cannot run on this drive now, or None."""
+    if mode and status.supported_modes and not cia402.supports(status.supported_modes, mode):
+        have = [cia402.mode_name(code) for code in MODES
+                if cia402.supports(status.supported_modes, code)]
+        return (f'node {status.node_id} does not support {cia402.mode_name(mode)} (0x6502 '
+                f'lists: {", ".join(have) or "none"})')
+    if command == 'enable' and status.faulted:
+        return (f'node {status.node_id} is in {status.state} with error '
+                f'0x{status.error_code:04X} ({status.error}): call fault_reset first')
+    return None
+
+
+def value_problem(name: str, value: float, bits: int) -> Optional[str]:
+    """Return why ``value`` (drive units) cannot be sent to a signed ``bits`` object, or None."""
+    if not math.isfinite(value):
+        return f'{name} {value} is not a finite number'
+    return integer_problem(name, round(value), bits)
+
+
+def integer_problem(name: str, value: int, bits: int, unsigned: bool = False) -> Optional[str]:
+    """Return why ``value`` does not fit a ``bits`` object, or None."""
+    if unsigned:
+        lowest, highest = 0, (1 << bits) - 1
+    else:
+        lowest, highest = -(1 << bits - 1), (1 << bits - 1) - 1
+    if not lowest <= value <= highest:
+        return (f"{name} {value} (drive units) does not fit the drive's {bits}-bit object: "
+                f'allowed {lowest}..{highest}')
+    return None

@@ -1,0 +1,328 @@
+"""The CiA 402 sequences behind drive commands, moves and set-points, as coroutines.
+
+Each runs on the drives' event loop (``drive.DriveService``): it sends a controlword, then
+awaits the statusword that shows the drive took it, and decides the next step from that, so
+a transition takes as long as the drive needs and no longer (python canopen's ``BaseNode402``
+sleeps and polls with fixed timeouts instead). One sequence runs per drive: a new command,
+move or set-point replaces the one running, which is answered "replaced"; shutdown answers
+every one "shutting down".
+"""
+
+import asyncio
+from typing import Callable, Dict, Optional
+
+from . import cia402
+
+SHUTTING_DOWN = 'the gateway is shutting down'
+# The timeout of each SDO a sequence sends (a PDO goes out without an answer).
+SEND_TIMEOUT = 1.0
+# How long a cancelled move waits for the halted axis to stand still before it answers.
+HALT_WAIT = 2.0
+
+
+class DriveFailed(Exception):
+    """A command cannot go on: the message says why, ``abort_code`` an SDO abort if any."""
+
+    def __init__(self, message: str, abort_code: int = 0):
+        super().__init__(message)
+        self.abort_code = abort_code
+
+
+class DriveCommands:
+    """The sequences of :class:`~.drive.DriveService` ``service``, one at a time per drive."""
+
+    def __init__(self, service):
+        self._service = service
+        self._tasks: Dict[int, asyncio.Task] = {}
+        self._reasons: Dict[asyncio.Task, str] = {}
+        self._halt_when_cancelled: set = set()
+        self._set_points: Dict[int, int] = {}
+        self._streams: set = set()  # the tasks streaming set-points
+
+    async def run(self, drive, command: str, mode: int, timeout: float):
+        """Run ``command`` (checked by the service) on ``drive``; return its DriveResult."""
+        sequence = getattr(self, f'_{command}')
+        return await self._own(drive, lambda: sequence(drive, mode), timeout)
+
+    async def move(self, drive, position: int, relative: bool, velocity: int,
+                   on_feedback: Optional[Callable]) -> object:
+        """Move in profile position to ``position``; return the DriveResult."""
+        return await self._own(drive, lambda: self._move(drive, position, relative, velocity,
+                                                         on_feedback), None)
+
+    def set_point(self, drive, position: int) -> None:
+        """Take ``position`` as the next PP set-point (on the loop); the latest one wins."""
+        self._set_points[drive.node_id] = position
+        if self._tasks.get(drive.node_id) in self._streams:
+            return  # the running stream takes it next
+        stream = asyncio.ensure_future(self._own(drive, lambda: self._stream(drive), None))
+        self._streams.add(stream)
+        stream.add_done_callback(self._streams.discard)
+
+    def cancel(self, drive, reason: str, halt: bool = False) -> None:
+        """End the sequence running on ``drive`` (on the loop), answered ``reason``."""
+        task = self._tasks.get(drive.node_id)
+        if task is None or task.done():
+            return
+        self._reasons[task] = reason
+        if halt:
+            self._halt_when_cancelled.add(task)
+        task.cancel()
+
+    async def _own(self, drive, sequence: Callable, timeout: Optional[float]):
+        from .drive import DriveResult  # the service's answer type; drive imports this module
+        task = asyncio.current_task()
+        previous = self._tasks.get(drive.node_id)
+        if previous is not None and not previous.done():
+            self._reasons[previous] = 'replaced by a newer command, move or target'
+            previous.cancel()
+        self._tasks[drive.node_id] = task
+        service, node_id = self._service, drive.node_id
+        try:
+            if timeout:
+                message = await asyncio.wait_for(sequence(), timeout)
+            else:
+                message = await sequence()
+            return DriveResult(True, message, service.status(node_id))
+        except DriveFailed as failure:
+            return DriveResult(False, str(failure), service.status(node_id),
+                               failure.abort_code)
+        except TimeoutError:
+            status = service.status(node_id)
+            return DriveResult(False, f'timed out after {timeout:g} s: node {node_id} is '
+                                      f'{status.state} (statusword 0x{status.statusword:04X}, '
+                                      f'mode {status.mode})', status)
+        except asyncio.CancelledError:
+            reason = self._reasons.pop(task, SHUTTING_DOWN)
+            if task in self._halt_when_cancelled:
+                self._halt_when_cancelled.discard(task)
+                reason = await self._halt_after_cancel(drive, reason)
+            return DriveResult(False, reason, service.status(node_id))
+        finally:
+            if self._tasks.get(node_id) is task:
+                del self._tasks[node_id]
+
+    # Waiting and sending.
+
+    async def _until(self, drive, ok: Callable, fault_ok: bool = False):
+        """Return the drive's status once ``ok(status)``; raise when it faults or is lost."""
+        loop = asyncio.get_running_loop()
+        while True:
+            woken = loop.create_future()
+            self._service.when_updated(drive, lambda f=woken: f.done() or f.set_result(None))
+            status = self._service.status(drive.node_id)
+            if not self._service.heard(drive):
+                raise DriveFailed(f'node {drive.node_id} stopped heartbeating: state UNKNOWN')
+            if status.faulted and not fault_ok:
+                raise DriveFailed(f'node {drive.node_id} went to {status.state}: error '
+                                  f'0x{status.error_code:04X} ({status.error or "reading"})',
+                                  0)
+            if ok(status):
+                return status
+            await woken
+
+    async def _send(self, drive, values: Dict[int, int]) -> int:
+        """Send ``values``; return the statuswords taken before (what a reply must exceed)."""
+        mark = self._service.updates(drive)
+        try:
+            sent = self._service.send(drive, values, SEND_TIMEOUT)
+        except ValueError as error:
+            raise DriveFailed(f'node {drive.node_id}: {error}; nothing was sent') from None
+        result = await asyncio.wrap_future(sent)
+        if not result.success:
+            raise DriveFailed(f'node {drive.node_id}: {result.message}', result.abort_code)
+        if cia402.STATUSWORD not in drive.objects.mapped_feedback():
+            self._service.request_feedback(drive)
+        return mark
+
+    async def _after(self, drive, mark: int, ok: Callable, fault_ok: bool = False):
+        """Return the first status newer than ``mark`` for which ``ok(status)``."""
+        return await self._until(drive, lambda status: self._service.updates(drive) > mark
+                                 and ok(status), fault_ok)
+
+    async def _reach(self, drive, wanted: str, done: Callable, fault_ok: bool = False):
+        """Step the drive towards ``wanted`` until ``done(status)``, a transition at a time."""
+        status = self._service.status(drive.node_id)
+        while not done(status):
+            if status.faulted and not fault_ok:
+                raise DriveFailed(f'node {drive.node_id} is in {status.state} (error '
+                                  f'0x{status.error_code:04X} {status.error}): call '
+                                  f'fault_reset first')
+            step = cia402.step_towards(status.state, wanted)
+            before = status.state
+            if step is not None:
+                await self._send(drive, {cia402.CONTROLWORD: step})
+            status = await self._until(
+                drive, lambda s, before=before: s.state != before or done(s), fault_ok)
+        return status
+
+    async def _hold(self, drive, mode: int) -> None:
+        """Set ``mode``'s target so that the axis stays where it is (before any enable)."""
+        index = cia402.TARGET_OF_MODE.get(mode)
+        if index is None:
+            return
+        value = 0
+        if index == cia402.TARGET_POSITION:
+            read = await asyncio.wrap_future(drive.objects.read([cia402.POSITION_ACTUAL],
+                                                                SEND_TIMEOUT))
+            if cia402.POSITION_ACTUAL not in read:
+                raise DriveFailed(f'node {drive.node_id}: its actual position (0x6064) could '
+                                  f'not be read, so no target could hold the axis; nothing '
+                                  f'was enabled')
+            value = read[cia402.POSITION_ACTUAL]
+        await self._send(drive, {index: value})
+
+    async def _change_mode(self, drive, mode: int) -> None:
+        if self._service.status(drive.node_id).mode == mode:
+            await self._hold(drive, mode)
+            return
+        await self._hold(drive, mode)
+        await self._send(drive, {cia402.MODE: mode})
+        await self._until(drive, lambda status: status.mode == mode)
+
+    # The commands.
+
+    async def _enable(self, drive, mode: int) -> str:
+        self._service.set_enabled(drive, False)
+        await self._change_mode(drive, mode or self._service.status(drive.node_id).mode)
+        self._service.set_halted(drive, '')
+        status = await self._reach(drive, cia402.OPERATION_ENABLED,
+                                   lambda s: s.state == cia402.OPERATION_ENABLED)
+        self._service.set_enabled(drive, True)
+        return f'node {drive.node_id} is OPERATION_ENABLED in {cia402.mode_name(status.mode)}'
+
+    async def _disable(self, drive, _mode: int) -> str:
+        self._service.set_enabled(drive, False)
+        status = await self._reach(drive, cia402.SWITCH_ON_DISABLED,
+                                   lambda s: s.state == cia402.SWITCH_ON_DISABLED or s.faulted,
+                                   fault_ok=True)
+        return f'node {drive.node_id} is {status.state}: its power stage is off'
+
+    async def _quick_stop(self, drive, _mode: int) -> str:
+        self._service.set_enabled(drive, False)
+        status = self._service.status(drive.node_id)
+        if _stopped(status) or status.state not in cia402.POWERED:
+            return f'node {drive.node_id} is {status.state}: nothing to stop'
+        mark = await self._send(drive, {cia402.CONTROLWORD: cia402.QUICK_STOP})
+        status = await self._after(drive, mark, _stopped, fault_ok=True)
+        return f'node {drive.node_id} stopped: {status.state}'
+
+    async def _halt(self, drive, _mode: int) -> str:
+        self._service.set_halted(drive, 'command')
+        word = self._service.controlword(drive) | cia402.HALT
+        mark = await self._send(drive, {cia402.CONTROLWORD: word})
+        status = await self._after(drive, mark, _standing)
+        return f'node {drive.node_id} halted at position {status.position}'
+
+    async def _resume(self, drive, _mode: int) -> str:
+        self._service.set_halted(drive, '')
+        self._service.set_enabled(drive, True)  # restarts the command timeout
+        word = self._service.controlword(drive) & ~cia402.HALT
+        mark = await self._send(drive, {cia402.CONTROLWORD: word})
+        await self._after(drive, mark, lambda status: True)
+        return f'node {drive.node_id} resumed'
+
+    async def _fault_reset(self, drive, _mode: int) -> str:
+        status = self._service.status(drive.node_id)
+        if not status.faulted:
+            return f'node {drive.node_id} is {status.state}: no fault to reset'
+        await self._until(drive, lambda s: s.state != cia402.FAULT_REACTION_ACTIVE,
+                          fault_ok=True)
+        if self._service.controlword(drive) & cia402.FAULT_RESET:
+            await self._send(drive, {cia402.CONTROLWORD: cia402.DISABLE_VOLTAGE})
+        await self._send(drive, {cia402.CONTROLWORD: cia402.FAULT_RESET})
+        status = await self._until(drive, lambda s: not s.faulted, fault_ok=True)
+        error = await asyncio.wrap_future(drive.objects.read([cia402.ERROR_CODE],
+                                                             SEND_TIMEOUT))
+        if cia402.ERROR_CODE in error:
+            self._service.take(drive, {cia402.ERROR_CODE: error[cia402.ERROR_CODE]})
+        return (f'fault reset: node {drive.node_id} is {status.state}; enable it to move '
+                f'again')
+
+    async def _set_mode(self, drive, mode: int) -> str:
+        await self._change_mode(drive, mode)
+        return f'node {drive.node_id} is in {cia402.mode_name(mode)}'
+
+    async def _home(self, drive, _mode: int) -> str:
+        await self._change_mode(drive, cia402.HOMING)
+        word = self._service.controlword(drive) & ~(cia402.MODE_BITS | cia402.HALT)
+        self._service.set_halted(drive, '')
+        if self._service.controlword(drive) & cia402.NEW_SET_POINT:
+            await self._send(drive, {cia402.CONTROLWORD: word})
+        mark = await self._send(drive, {cia402.CONTROLWORD: word | cia402.NEW_SET_POINT})
+        status = await self._after(drive, mark, lambda s: bool(
+            s.statusword & cia402.MODE_BIT_13
+            or (s.statusword & cia402.MODE_BIT_12 and s.target_reached)))
+        await self._send(drive, {cia402.CONTROLWORD: word})
+        if status.statusword & cia402.MODE_BIT_13:
+            raise DriveFailed(f'node {drive.node_id}: homing failed (statusword bit 13, '
+                              f'homing error; method in 0x6098)')
+        return f'node {drive.node_id} homed: position {status.position}'
+
+    # Profile position: moves and streamed set-points share the set-point handshake.
+
+    async def _move(self, drive, position: int, relative: bool, velocity: int,
+                    on_feedback: Optional[Callable]) -> str:
+        await self._change_to_pp(drive)
+        if velocity:
+            await self._send(drive, {cia402.PROFILE_VELOCITY_OBJECT: velocity})
+        mark = await self._new_set_point(drive, position, relative)
+        while True:
+            status = await self._after(drive, mark, lambda s: True)
+            mark = self._service.updates(drive)
+            if on_feedback is not None:
+                on_feedback(status)
+            if status.target_reached:
+                return f'node {drive.node_id} reached position {status.position}'
+
+    async def _stream(self, drive) -> str:
+        await self._change_to_pp(drive)
+        while drive.node_id in self._set_points:
+            await self._new_set_point(drive, self._set_points.pop(drive.node_id), False)
+        return 'set-points taken'
+
+    async def _change_to_pp(self, drive) -> None:
+        if self._service.status(drive.node_id).mode != cia402.PROFILE_POSITION:
+            await self._change_mode(drive, cia402.PROFILE_POSITION)
+
+    async def _new_set_point(self, drive, position: int, relative: bool) -> int:
+        """Hand the drive a set-point (bit 4 up, wait for bit 12, bit 4 down); return a mark.
+
+        The mark is taken when the drive acknowledged: target reached counts from there.
+        """
+        self._service.set_halted(drive, '')
+        word = self._service.controlword(drive) & ~(cia402.MODE_BITS | cia402.HALT)
+        status = self._service.status(drive.node_id)
+        if (self._service.controlword(drive) & cia402.NEW_SET_POINT
+                or status.statusword & cia402.MODE_BIT_12):
+            mark = await self._send(drive, {cia402.CONTROLWORD: word})
+            await self._after(drive, mark, lambda s: not s.statusword & cia402.MODE_BIT_12)
+        bits = cia402.NEW_SET_POINT | cia402.CHANGE_SET_IMMEDIATELY
+        if relative:
+            bits |= cia402.RELATIVE
+        mark = await self._send(drive, {cia402.TARGET_POSITION: position,
+                                        cia402.CONTROLWORD: word | bits})
+        await self._after(drive, mark, lambda s: bool(s.statusword & cia402.MODE_BIT_12))
+        acknowledged = self._service.updates(drive) - 1
+        await self._send(drive, {cia402.CONTROLWORD: word})
+        return acknowledged
+
+    async def _halt_after_cancel(self, drive, reason: str) -> str:
+        """Halt the drive of a cancelled move; return the answer with where it stopped."""
+        self._service.set_halted(drive, 'cancel')
+        try:
+            mark = await self._send(drive, {
+                cia402.CONTROLWORD: self._service.controlword(drive) | cia402.HALT})
+            status = await asyncio.wait_for(self._after(drive, mark, _standing), HALT_WAIT)
+        except (DriveFailed, TimeoutError) as error:
+            return f'{reason}; the halt was not confirmed: {error or "no standstill"}'
+        return f'{reason}: halted at position {status.position}'
+
+
+def _standing(status) -> bool:
+    return status.target_reached and status.velocity == 0
+
+
+def _stopped(status) -> bool:
+    return (status.state == cia402.SWITCH_ON_DISABLED or status.faulted
+            or (status.state == cia402.QUICK_STOP_ACTIVE and status.target_reached))

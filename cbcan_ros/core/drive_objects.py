@@ -1,0 +1,176 @@
+"""A drive's CiA 402 objects on the bus: by PDO wherever the drive maps them, by SDO otherwise.
+
+Writes go into the drive's receive PDOs as the PDO service read their mapping
+(``pdo.nodes``); an object no usable RPDO maps is written by SDO. A PDO carries every object it
+maps, so each frame is built from what the gateway last commanded for all of them: a
+controlword sent in the same RPDO as the target position and the mode repeats the commanded
+target and mode, never a zero the drive would take as a new one. An RPDO mapping a drive
+object the gateway has no commanded value for yet is not used (SDO instead).
+
+A synchronous RPDO is used only while the gateway produces SYNC: the PDO service then sends
+it right after a SYNC, and the drive applies it at the next one. Without SYNC it would never
+be applied, so its objects go by SDO.
+"""
+
+from concurrent.futures import Future
+import struct
+import threading
+from typing import Dict, Iterable, List, Set
+
+from . import cia402
+from .pdo import PdoService
+from .pdo_mapping import EntryValue
+from .request_queue import resolved
+from .sdo import Access, SdoResult
+
+# Feedback objects: what the gateway reads of a drive, in TPDOs or by SDO.
+FEEDBACK = (cia402.STATUSWORD, cia402.MODE_DISPLAY, cia402.POSITION_ACTUAL,
+            cia402.VELOCITY_ACTUAL, cia402.TORQUE_ACTUAL)
+# Objects the gateway commands: a frame of an RPDO mapping one of them needs its value.
+COMMANDED = frozenset({cia402.CONTROLWORD, cia402.MODE, cia402.TARGET_POSITION,
+                       cia402.TARGET_VELOCITY, cia402.TARGET_TORQUE,
+                       cia402.PROFILE_VELOCITY_OBJECT})
+
+
+def encode(index: int, value: int) -> bytes:
+    """Return ``value`` of a drive object as its SDO bytes; ValueError when it does not fit."""
+    try:
+        return struct.pack(cia402.FORMATS[index], value)
+    except struct.error:
+        raise ValueError(f'{value} does not fit 0x{index:04X} '
+                         f'({cia402.FORMATS[index]})') from None
+
+
+def decode(index: int, data: bytes) -> int:
+    """Return the value of a drive object from its SDO bytes (short ones padded)."""
+    size = struct.calcsize(cia402.FORMATS[index])
+    return struct.unpack(cia402.FORMATS[index], bytes(data[:size]).ljust(size, b'\0'))[0]
+
+
+def all_of(futures: List[Future]) -> 'Future[SdoResult]':
+    """Return a future of the first failure among ``futures`` (SdoResults), else success."""
+    if not futures:
+        return resolved(SdoResult.ok())
+    done: Future = Future()
+    remaining = [len(futures)]
+    lock = threading.Lock()
+
+    def collect(_finished: Future) -> None:
+        with lock:
+            remaining[0] -= 1
+            last = remaining[0] == 0
+        if last:
+            results = [future.result() for future in futures]
+            done.set_result(next((r for r in results if not r.success), results[0]))
+
+    for future in futures:
+        future.add_done_callback(collect)
+    return done
+
+
+class DriveObjects:
+    """The objects of drive ``node_id``: commanded values kept, reads and writes routed.
+
+    ``sdo_batch`` is the gateway's (its SDO channels and write protection), ``pdo`` its PDO
+    service, ``sync_producing()`` whether the gateway produces SYNC now.
+    """
+
+    def __init__(self, node_id: int, pdo: PdoService, sdo_batch, sync_producing):
+        self.node_id = node_id
+        self._pdo = pdo
+        self._sdo_batch = sdo_batch
+        self._sync_producing = sync_producing
+        self._lock = threading.Lock()
+        self.commanded: Dict[int, int] = {}
+
+    def forget(self) -> None:
+        """Drop the commanded values (the drive booted: they are read again)."""
+        with self._lock:
+            self.commanded.clear()
+
+    def know(self, values: Dict[int, int]) -> None:
+        """Take ``values`` as what the drive has now, without sending them."""
+        with self._lock:
+            self.commanded.update(values)
+
+    def mapped_feedback(self) -> Set[int]:
+        """Return the feedback objects the drive sends in an enabled, usable TPDO."""
+        if self.node_id not in self._pdo.node_ids:
+            return set()
+        tpdos, _ = self._pdo.mappings(self.node_id)
+        return {entry.index for mapping in tpdos.values()
+                if mapping.enabled and not mapping.problem for entry in mapping.entries
+                if entry.index in FEEDBACK and entry.subindex == 0}
+
+    def write(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':
+        """Send ``values`` (object: value) to the drive; resolves when all went out or why not.
+
+        Raises ValueError when a value does not fit its object (nothing is sent then).
+        """
+        data = {index: encode(index, value) for index, value in values.items()}
+        with self._lock:
+            self.commanded.update(values)
+            commanded = dict(self.commanded)
+        futures = []
+        by_sdo = set(values)
+        for number, indexes in self._rpdos_for(values, commanded).items():
+            futures.append(self._pdo.write(self.node_id, number, [
+                EntryValue(index, 0, commanded[index]) for index in indexes]))
+            by_sdo -= set(indexes)
+        if by_sdo:
+            futures.append(self._write_by_sdo([(index, data[index]) for index in sorted(
+                by_sdo, key=list(values).index)], timeout))
+        return all_of(futures)
+
+    def write_by_sdo(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':
+        """Send ``values`` by SDO whatever the PDOs map (applied at once, with an answer)."""
+        data = [(index, encode(index, value)) for index, value in values.items()]
+        with self._lock:
+            self.commanded.update(values)
+        return self._write_by_sdo(data, timeout)
+
+    def read(self, indexes: Iterable[int], timeout: float) -> 'Future[Dict[int, int]]':
+        """Read ``indexes`` by SDO; resolves to the values read (failed ones left out)."""
+        indexes = list(indexes)
+        batch = self._sdo_batch([Access(self.node_id, index, 0) for index in indexes],
+                                timeout)
+        done: Future = Future()
+
+        def collect(finished: Future) -> None:
+            done.set_result({index: decode(index, result.data) for index, result
+                             in zip(indexes, finished.result(), strict=True)
+                             if result.success})
+
+        batch.add_done_callback(collect)
+        return done
+
+    def _write_by_sdo(self, data, timeout: float) -> 'Future[SdoResult]':
+        batch = self._sdo_batch([Access(self.node_id, index, 0, True, value)
+                                 for index, value in data], timeout)
+        done: Future = Future()
+        batch.add_done_callback(lambda finished: done.set_result(next(
+            (result for result in finished.result() if not result.success),
+            SdoResult.ok())))
+        return done
+
+    def _rpdos_for(self, values: Dict[int, int],
+                   commanded: Dict[int, int]) -> Dict[int, List[int]]:
+        """Return the usable RPDOs that carry some of ``values``: number -> objects mapped."""
+        if self.node_id not in self._pdo.node_ids:
+            return {}
+        _, rpdos = self._pdo.mappings(self.node_id)
+        chosen: Dict[int, List[int]] = {}
+        for number, mapping in rpdos.items():
+            if (not mapping.enabled or mapping.problem
+                    or (mapping.synchronous and not self._sync_producing())):
+                continue
+            mapped = [entry.index for entry in mapping.entries
+                      if entry.subindex == 0 and entry.index in COMMANDED]
+            if not set(mapped) & set(values) or not set(mapped) <= set(commanded):
+                continue
+            carried = {index for indexes in chosen.values() for index in indexes}
+            if set(mapped) & set(values) <= carried:
+                continue  # an RPDO chosen before carries them already
+            chosen[number] = mapped
+        return chosen
+

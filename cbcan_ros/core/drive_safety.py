@@ -1,0 +1,100 @@
+"""The drives' safety stops: at shutdown, when targets stop coming, when the gateway dies.
+
+- :func:`stop_motion`: ``drives.on_shutdown`` (quick stop, disable voltage) sent by SDO to
+  every powered drive, so it takes effect at once whatever the PDOs' transmission types;
+  called while the gateway shuts down or a managed node is deactivated, before the bus closes.
+- :func:`command_timed_out`: a drive in a streaming mode without a new target for
+  ``drives.command_timeout`` is halted (controlword bit 8): it decelerates and holds.
+- :func:`watch_the_gateway`: the drive's heartbeat consumer (0x1016:1) set to the gateway's
+  heartbeat, so that the drive's own 0x6007 reaction stops it when the gateway, its computer
+  or the bus dies; SIGKILL and power loss included.
+"""
+
+import asyncio
+from dataclasses import replace
+import logging
+import struct
+import time
+from typing import Iterable, Optional
+
+from . import cia402
+from .drive_status import DriveRecord, DriveSettings
+from .sdo import Access
+
+LOGGER = logging.getLogger(__name__)
+
+ON_SHUTDOWN = {'quick_stop': cia402.QUICK_STOP, 'disable': cia402.DISABLE_VOLTAGE,
+               'none': None}
+# How long shutdown waits for the drives to confirm its stop commands.
+SHUTDOWN_WAIT = 0.5
+CONSUMER_TIMEOUT = 2.0
+
+
+def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
+                reason: str) -> None:
+    """Send ``on_shutdown`` by SDO to every powered drive; wait for them to take it."""
+    word = ON_SHUTDOWN[settings.on_shutdown]
+    if word is None:
+        return
+    with lock:
+        drives = [drive for drive in records
+                  if drive.heard and drive.status.state in cia402.POWERED]
+        for drive in drives:
+            drive.controlword = word
+            drive.status = replace(drive.status, needs_enable=True)
+    sent = [(drive.node_id, drive.objects.write_by_sdo({cia402.CONTROLWORD: word},
+                                                       SHUTDOWN_WAIT)) for drive in drives]
+    deadline = time.monotonic() + SHUTDOWN_WAIT
+    failed = []
+    for node_id, future in sent:
+        try:
+            result = future.result(max(0.0, deadline - time.monotonic()))
+        except TimeoutError:
+            failed.append(f'{node_id} (no answer)')
+            continue
+        if not result.success:
+            failed.append(f'{node_id} ({result.message})')
+    if sent:
+        LOGGER.info('%s: %s sent to drives %s%s', reason, settings.on_shutdown,
+                    ', '.join(str(node_id) for node_id, _ in sent),
+                    f'; not taken by {", ".join(failed)}' if failed else '')
+
+
+def command_timed_out(drive: DriveRecord, settings: DriveSettings, lock) -> Optional[int]:
+    """Return the halting controlword when ``drive`` has waited too long for a target, else None.
+
+    Records the halt; the caller sends the controlword.
+    """
+    limit = settings.command_timeout
+    with lock:
+        status = drive.status
+        if (not limit or status.state != cia402.OPERATION_ENABLED or status.needs_enable
+                or drive.halted_by or status.mode not in cia402.STREAMING_MODES
+                or time.monotonic() - drive.last_target < limit):
+            return None
+        drive.timeouts += 1
+        drive.halted_by = 'timeout'
+        drive.controlword |= cia402.HALT
+        drive.status = replace(status, halted=True)
+        word, count = drive.controlword, drive.timeouts
+    # One line per drive; later halts are counted (diagnostics), not logged again.
+    (LOGGER.warning if count == 1 else LOGGER.debug)(
+        'drive %d: no target for %.3f s (drives.command_timeout): halted; the next target '
+        'resumes it (halted this way %d times)', drive.node_id, limit, count)
+    return word
+
+
+async def watch_the_gateway(sdo_batch, node_id: int, settings: DriveSettings) -> None:
+    """Tell drive ``node_id`` to watch the gateway's heartbeat (0x1016:1), when configured."""
+    if not (settings.consumer_time and settings.heartbeat_node_id):
+        return
+    entry = (settings.heartbeat_node_id << 16) | round(settings.consumer_time * 1000)
+    written = await asyncio.wrap_future(sdo_batch(
+        [Access(node_id, cia402.CONSUMER_HEARTBEAT, 1, True, struct.pack('<I', entry))],
+        CONSUMER_TIMEOUT))
+    if written[0].success:
+        LOGGER.info('drive %d watches the gateway heartbeat (0x1016:1 = 0x%08X): it stops by '
+                    'itself after %.3f s without it', node_id, entry, settings.consumer_time)
+    else:
+        LOGGER.warning('drive %d: its heartbeat consumer (0x1016:1) was not set: %s; it will '
+                       'not stop by itself if the gateway dies', node_id, written[0].message)

@@ -1,0 +1,91 @@
+"""What the gateway knows of its CiA 402 drives: settings, status, answers, the record kept.
+
+Shared by the drive service (``drive``), its sequences (``drive_commands``) and its checks
+(``drive_checks``); the ROS layer reads :class:`DriveStatus` and :class:`DriveResult`.
+"""
+
+from dataclasses import dataclass, field
+from typing import Callable, List, Tuple
+
+from . import cia402
+from .drive_objects import DriveObjects
+
+
+@dataclass(frozen=True)
+class DriveSettings:
+    """How the gateway runs its drives (the ROS node fills it from ``drives.*``)."""
+
+    node_ids: Tuple[int, ...] = ()
+    command_timeout: float = 0.5  # s without a target before a streaming drive is halted
+    on_shutdown: str = 'quick_stop'
+    consumer_time: float = 0.0  # s; with heartbeat_node_id, written to each drive's 0x1016
+    heartbeat_node_id: int = 0
+    feedback_period: float = 0.02  # s between feedback cycles (the SYNC period with SYNC)
+
+
+@dataclass(frozen=True)
+class DriveStatus:
+    """What the gateway knows of one drive now; values in the drive's own units."""
+
+    node_id: int
+    state: str = cia402.UNKNOWN
+    statusword: int = 0
+    mode: int = 0  # 0x6061, the mode the drive is in
+    position: int = 0
+    velocity: int = 0
+    torque: int = 0
+    error_code: int = 0
+    received: float = 0.0  # time.monotonic() of the last feedback; 0 = none yet
+    halted: bool = False
+    needs_enable: bool = True  # targets are refused until an enable succeeds
+    supported_modes: int = 0  # 0x6502; 0 = not read
+
+    @property
+    def error(self) -> str:
+        """Return the meaning of the error code, '' without one."""
+        return cia402.error_meaning(self.error_code) if self.error_code else ''
+
+    @property
+    def target_reached(self) -> bool:
+        """Return statusword bit 10."""
+        return bool(self.statusword & cia402.TARGET_REACHED)
+
+    @property
+    def faulted(self) -> bool:
+        """Return whether the drive is in FAULT or its fault reaction."""
+        return self.state in cia402.FAULTED
+
+
+@dataclass(frozen=True)
+class DriveResult:
+    """The one answer to a drive command or move."""
+
+    success: bool
+    message: str
+    status: DriveStatus
+    abort_code: int = 0
+
+
+@dataclass
+class DriveRecord:
+    """A drive's mutable state, guarded by the service's lock."""
+
+    node_id: int
+    objects: DriveObjects
+    status: DriveStatus
+    heard: bool = False  # heartbeat seen since it was last lost
+    read_wanted: int = 0  # initial reads asked for (first heard, each boot)
+    read_done: int = 0  # the request the values answer; negative: that one failed
+    read_failed_at: float = 0.0
+    updates: int = 0  # statuswords taken: a waiter asks for one newer than it sent
+    controlword: int = 0
+    halted_by: str = ''  # '', 'command' or 'timeout'
+    last_target: float = 0.0
+    polling: bool = False
+    timeouts: int = 0
+    waiters: List[Callable[[], None]] = field(default_factory=list)
+
+
+def failed(status: DriveStatus, message: str, abort_code: int = 0) -> DriveResult:
+    """Return the failed answer ``message`` for a drive whose status is ``status``."""
+    return DriveResult(False, message, status, abort_code)
