@@ -52,6 +52,7 @@ from cbcan_ros.msg import NodeStates  # noqa: E402
 from cbcan_ros.ros.interface import NODE_STATES_QOS, SERVICE_QOS  # noqa: E402
 from cbcan_ros.ros.node import CbcanNode  # noqa: E402
 from cbcan_ros.srv import (  # noqa: E402
+    DriveCommand,
     LssConfigure,
     LssInquire,
     LssScan,
@@ -73,6 +74,7 @@ SERVICE_TYPES = {
     'lss_configure': LssConfigure,
     'lss_inquire': LssInquire,
     'pdo_write': PdoWrite,
+    'drive_command': DriveCommand,
 }
 
 DEFAULT_DEVICES = [2, 3, 5]

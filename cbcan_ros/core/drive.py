@@ -356,7 +356,9 @@ class DriveService:
                           error_code=values.get(cia402.ERROR_CODE, old.error_code),
                           received=stamp)
             if new.faulted and not old.faulted:
-                new = replace(new, needs_enable=True)
+                # The EMCY the drive sent with its fault names the error until 0x603F is read.
+                new = replace(new, needs_enable=True, error_code=values.get(
+                    cia402.ERROR_CODE, drive.emcy_code or old.error_code))
             drive.status = new
             if cia402.STATUSWORD in values:
                 drive.updates += 1
@@ -368,6 +370,17 @@ class DriveService:
             self._notify(new)
         if cia402.STATUSWORD in values or changed:
             self._wake(drive)
+
+    def on_emcy(self, node_id: int, error_code: int) -> None:
+        """Take the error code of an EMCY a drive sent (0: its errors are gone)."""
+        drive = self._drives.get(node_id)
+        if drive is None:
+            return
+        with self._lock:
+            drive.emcy_code = error_code
+            update = error_code and drive.status.faulted and not drive.status.error_code
+        if update:
+            self._apply(drive, {cia402.ERROR_CODE: error_code}, time.monotonic())
 
     def _wake(self, drive: DriveRecord) -> None:
         with self._lock:
@@ -420,6 +433,7 @@ class DriveService:
     def _run_cycles(self) -> None:
         period = self.settings.feedback_period
         next_cycle = time.monotonic()
+        failures = set()
         while not self._stop_cycle.is_set():
             for drive in self._drives.values():
                 self._poll(drive)
@@ -430,8 +444,12 @@ class DriveService:
             for listener in self._cycle_listeners:
                 try:
                     listener()
-                except Exception:  # noqa: BLE001 - a failing listener must not end the cycle
-                    LOGGER.exception('a drive cycle listener failed')
+                except Exception as error:  # noqa: BLE001 - it must not end the cycle
+                    kind = type(error).__name__
+                    if kind not in failures:  # once per kind: a cycle is 50 times a second
+                        failures.add(kind)
+                        LOGGER.error('a drive cycle listener failed (%s: %s); later failures '
+                                     'of this kind are not logged', kind, error)
             next_cycle += period
             now = time.monotonic()
             if next_cycle < now:  # fell behind (a loaded machine): skip, do not catch up

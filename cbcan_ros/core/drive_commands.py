@@ -12,6 +12,7 @@ import asyncio
 from typing import Callable, Dict, Optional
 
 from . import cia402
+from .drive_status import DriveResult
 
 SHUTTING_DOWN = 'the gateway is shutting down'
 # The timeout of each SDO a sequence sends (a PDO goes out without an answer).
@@ -70,7 +71,6 @@ class DriveCommands:
         task.cancel()
 
     async def _own(self, drive, sequence: Callable, timeout: Optional[float]):
-        from .drive import DriveResult  # the service's answer type; drive imports this module
         task = asyncio.current_task()
         previous = self._tasks.get(drive.node_id)
         if previous is not None and not previous.done():
@@ -211,8 +211,10 @@ class DriveCommands:
         self._service.set_halted(drive, 'command')
         word = self._service.controlword(drive) | cia402.HALT
         mark = await self._send(drive, {cia402.CONTROLWORD: word})
-        status = await self._after(drive, mark, _standing)
-        return f'node {drive.node_id} halted at position {status.position}'
+        await self._after(drive, mark, _standing)
+        await self._read_position(drive)
+        position = self._service.status(drive.node_id).position
+        return f'node {drive.node_id} halted at position {position}'
 
     async def _resume(self, drive, _mode: int) -> str:
         self._service.set_halted(drive, '')
@@ -273,7 +275,15 @@ class DriveCommands:
             if on_feedback is not None:
                 on_feedback(status)
             if status.target_reached:
-                return f'node {drive.node_id} reached position {status.position}'
+                # The TPDO with the position may lag the statusword's: the answer reads it.
+                await self._read_position(drive)
+                position = self._service.status(drive.node_id).position
+                return f'node {drive.node_id} reached position {position}'
+
+    async def _read_position(self, drive) -> None:
+        read = await asyncio.wrap_future(drive.objects.read([cia402.POSITION_ACTUAL],
+                                                            SEND_TIMEOUT))
+        self._service.take(drive, read)
 
     async def _stream(self, drive) -> str:
         await self._change_to_pp(drive)
@@ -313,10 +323,11 @@ class DriveCommands:
         try:
             mark = await self._send(drive, {
                 cia402.CONTROLWORD: self._service.controlword(drive) | cia402.HALT})
-            status = await asyncio.wait_for(self._after(drive, mark, _standing), HALT_WAIT)
+            await asyncio.wait_for(self._after(drive, mark, _standing), HALT_WAIT)
         except (DriveFailed, TimeoutError) as error:
             return f'{reason}; the halt was not confirmed: {error or "no standstill"}'
-        return f'{reason}: halted at position {status.position}'
+        await self._read_position(drive)
+        return f'{reason}: halted at position {self._service.status(drive.node_id).position}'
 
 
 def _standing(status) -> bool:

@@ -83,6 +83,7 @@ class DriveRecord:
     last_target: float = 0.0
     polling: bool = False
     timeouts: int = 0
+    emcy_code: int = 0  # the error code of the last EMCY
     waiters: List[Callable[[], None]] = field(default_factory=list)
 
 

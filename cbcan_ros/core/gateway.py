@@ -158,6 +158,8 @@ class Gateway:
                                                                          True),
                                    lambda: self.sync.producing,
                                    config.write_protection)
+        self.emcy.add_listener(lambda emergency: self.drives.on_emcy(
+            emergency.node_id, emergency.error_code))
         self._deadlines = Deadlines()
         self.lss = LssMaster(
             self.network, self._deadlines,

@@ -6,7 +6,7 @@ message naming the parameter, the value and what is allowed (``parameter_checks.
 """
 
 import os
-from typing import List
+from typing import Dict, List
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
@@ -15,6 +15,7 @@ from rclpy.parameter import Parameter
 from ..core import eds
 from ..core.gateway import GatewayConfig
 from ..core.write_protection import RULE_FORMAT, WriteProtection
+from . import drive_parameters
 from . import parameter_checks as checks
 
 
@@ -128,6 +129,14 @@ class NodeParameters:
                       'SYNC counter (CiA 301): 0 = SYNC without counter; 2..240 = with a '
                       'counter from 1 that wraps after this value',
                       integer_range=[IntegerRange(from_value=0, to_value=240, step=0)])
+        self._declare('drives.nodes', Parameter.Type.INTEGER_ARRAY,
+                      'Node ids (1..127) of the devices run as CiA 402 drives: commanded on '
+                      '~/drive_command and ~/move, their targets taken on ~/node_<id>/target '
+                      'and ~/joint_commands, their state on ~/joint_states and '
+                      '~/node_<id>/drive_state. They are watched and their PDOs served as if '
+                      'also in nodes and pdo.nodes',
+                      additional_constraints=checks.NODE_IDS)
+        drive_parameters.declare(self._declare, self._given_ids('drives.nodes'))
         self._declare('simulation.devices', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) of simulated CANopen devices to put on the bus, for '
                       'trying the gateway without hardware; empty on a real bus',
@@ -155,6 +164,10 @@ class NodeParameters:
         expected, guarded = self.node_ids('nodes'), self.node_ids('node_guarding')
         simulated = self.node_ids('simulation.devices')
         pdo_nodes = self.node_ids('pdo.nodes')
+        drives = drive_parameters.settings(
+            value, self.node_ids('drives.nodes'), self._optional('heartbeat.node_id', 0),
+            self._optional('heartbeat.period', 0.1), value('sync.period'))
+        self.joints()
         checks.check_sync(value('sync.period'), value('sync.counter_overflow'))
         checks.check_file('simulation.eds', value('simulation.eds'))
         self.check_device_files()  # the core does not use them; a bad one stops the node here
@@ -190,7 +203,19 @@ class NodeParameters:
                           for node_id in self._listed_devices()
                           if value(device_file_parameter(node_id))},
             sync_period=value('sync.period'),
-            sync_counter_overflow=value('sync.counter_overflow'))
+            sync_counter_overflow=value('sync.counter_overflow'),
+            drives=drives)
+
+    def joints(self) -> Dict[int, drive_parameters.Joint]:
+        """Return every drive's joint (name, scales); raise ConfigurationError when wrong."""
+        return drive_parameters.joints(self.value, self.node_ids('drives.nodes'))
+
+    def _optional(self, name: str, default):
+        return self._node.get_parameter_or(name, Parameter(name, value=default)).value
+
+    def _given_ids(self, name: str) -> List[int]:
+        """Return the node ids given for ``name`` that can name parameters (1..127)."""
+        return [node_id for node_id in self._optional(name, []) or [] if 1 <= node_id <= 127]
 
     def _strings(self, name: str) -> List[str]:
         return list(self._node.get_parameter_or(name, Parameter(name, value=[])).value or [])
@@ -208,7 +233,7 @@ class NodeParameters:
 
     def _listed_devices(self) -> List[int]:
         listed = set()
-        for name in ('nodes', 'node_guarding', 'pdo.nodes'):
+        for name in ('nodes', 'node_guarding', 'pdo.nodes', 'drives.nodes'):
             listed.update(self._node.get_parameter_or(name, Parameter(name, value=[])).value
                           or [])
         return sorted(node_id for node_id in listed if 1 <= node_id <= 127)

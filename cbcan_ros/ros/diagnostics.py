@@ -20,13 +20,16 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from ..core import cia402
 from ..core.bus import BusStatus
+from ..core.drive_status import DriveStatus
 from ..core.emcy import EmcyStatus, Emergency
 from ..core.gateway import Gateway
 from ..core.nmt import NodeStatus
 from ..core.pdo import PdoStatistics
 from ..core.sdo_channel import SdoStatistics
 from ..core.sync import SyncStatus
+from .drive_parameters import Joint
 
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                              reliability=ReliabilityPolicy.RELIABLE,
@@ -60,14 +63,17 @@ class Diagnostics:
       an active EMCY (one not cleared by an error reset) or, for a device of ``pdo.nodes``,
       while an event-driven TPDO has been silent for twice its event timer, else OK. Its
       PDOs received and sent per second and the frames shorter than their mapping.
+    - ``<node>: drive <id>`` for every drive: ERROR in FAULT (the error code and its
+      meaning), WARN while not heard, else OK with its state.
     - ``<node>: SYNC`` while the gateway produces SYNC: ERROR while it is not on the bus,
       with the period configured and the one measured between SYNCs heard on the bus (an
       adapter that does not echo its own frames shows none).
     """
 
-    def __init__(self, node: Node, gateway: Gateway):
+    def __init__(self, node: Node, gateway: Gateway, joints: Dict[int, Joint]):
         self._node = node
         self._gateway = gateway
+        self._joints = joints
         self._publisher = node.create_publisher(DiagnosticArray, '/diagnostics',
                                                 DIAGNOSTICS_QOS)
         self._prefix = (node.get_name() if node.get_namespace() == '/'
@@ -87,6 +93,8 @@ class Diagnostics:
                         *self._device_statuses(bus.up, elapsed)]
         if self._gateway.sync.producing:
             array.status.append(self._sync_status(self._gateway.sync.status()))
+        array.status += [self._drive_status(status)
+                         for status in self._gateway.drives.statuses()]
         self._publisher.publish(array)
 
     def destroy(self) -> None:
@@ -142,6 +150,32 @@ class Diagnostics:
             'Started': sync.starts,
             'SYNC frames heard': sync.heard,
         })
+
+    def _drive_status(self, drive: DriveStatus) -> DiagnosticStatus:
+        node_id = drive.node_id
+        timeouts = self._gateway.drives.command_timeouts(node_id)
+        if drive.faulted:
+            level = ERROR
+            message = f'{drive.state}: error 0x{drive.error_code:04X} {drive.error}'
+        elif drive.state == cia402.UNKNOWN:
+            level, message = WARN, 'UNKNOWN: not heard'
+        else:
+            level, message = OK, drive.state
+            if drive.halted:
+                message += ', halted'
+        return _status(level, f'{self._prefix}: drive {node_id}', message,
+                       f'canopen node {node_id} on {self._bus_id}', {
+                           'Joint': self._joints[node_id].name,
+                           'State': drive.state,
+                           'Statusword': f'0x{drive.statusword:04X}',
+                           'Mode': cia402.mode_name(drive.mode) if drive.mode else 'none',
+                           'Error code': f'0x{drive.error_code:04X}',
+                           'Error': drive.error or 'none',
+                           'Halted': 'yes' if drive.halted else 'no',
+                           'Needs enable': 'yes' if drive.needs_enable else 'no',
+                           'Halted by the command timeout': timeouts,
+                           'Position (device units)': drive.position,
+                       })
 
     def _device_statuses(self, bus_up: bool, elapsed: float) -> List[DiagnosticStatus]:
         gateway = self._gateway

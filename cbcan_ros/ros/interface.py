@@ -33,6 +33,7 @@ from ..msg import LssIdentity, NodeState, NodeStates
 from ..msg import SdoResult as SdoResultMessage
 from ..plc.mailbox import Mailbox
 from ..srv import (
+    DriveCommand,
     LssConfigure,
     LssInquire,
     LssScan,
@@ -47,6 +48,7 @@ from ..srv import (
 from .config import NodeParameters
 from .deferred import CallsInProgress, DeferredService
 from .diagnostics import Diagnostics
+from .drives import DriveTopics, fill_command
 from .emcy import EmcyPublisher
 from .pdo import check_request, entry_values, PdoTopics
 from .rclpy_gaps import drain
@@ -176,6 +178,8 @@ class GatewayInterface:
         self._calls = CallsInProgress()
         self._mailbox_loop = CoroutineRunner('plc mailbox')
         self._mailbox = Mailbox(self.gateway, asyncio.wrap_future)
+        self._drives = DriveTopics(node, self.gateway.drives, parameters.joints(),
+                                   lambda: None if self.active else INACTIVE)
         # Calls must overlap: a slow device never holds up the others or the state topic.
         options = dict(qos_profile=SERVICE_QOS, callback_group=ReentrantCallbackGroup())
         self._deferred = [
@@ -189,7 +193,8 @@ class GatewayInterface:
                 (RegisterMailbox, 'plc_mailbox', self._start_mailbox, _fill_registers),
                 (LssScan, 'lss_scan', self._start_lss_scan, _fill_lss),
                 (LssConfigure, 'lss_configure', self._start_lss_configure, _fill_lss),
-                (LssInquire, 'lss_inquire', self._start_lss_inquire, _fill_lss))]
+                (LssInquire, 'lss_inquire', self._start_lss_inquire, _fill_lss),
+                (DriveCommand, 'drive_command', self._drives.start_command, fill_command))]
         self._services = [
             node.create_service(service_type, f'~/{name}', callback, **options)
             for service_type, name, callback in (
@@ -211,7 +216,7 @@ class GatewayInterface:
         self.gateway.monitor.add_listener(self._states_changed.set)
         self._pdo_topics = PdoTopics(node, self.gateway.pdo, self._on_tpdo_message,
                                      lambda: self.active)
-        self._diagnostics = Diagnostics(node, self.gateway)
+        self._diagnostics = Diagnostics(node, self.gateway, parameters.joints())
         self._timers = [node.create_timer(parameters.value('state_publish_period'),
                                           self._publish_states),
                         node.create_timer(parameters.value('diagnostics_period'),
@@ -238,8 +243,12 @@ class GatewayInterface:
         self._publish_states()
 
     def deactivate(self) -> None:
-        """Answer every new call "inactive" and stop publishing; calls under way finish."""
+        """Answer every new call "inactive", stop the drives and publishing.
+
+        SDO calls under way finish; drive commands and moves under way are answered.
+        """
         self.active = False
+        self.gateway.drives.pause('the gateway was deactivated')
 
     def shut_down(self) -> None:
         """Answer every waiting call ("shutting down"), abort running transfers, close the bus.
@@ -272,6 +281,7 @@ class GatewayInterface:
             publisher, self._states_publisher = self._states_publisher, None
         node.destroy_publisher(publisher)
         self._emcy.destroy()
+        self._drives.destroy()
         self._pdo_topics.destroy()
         self._diagnostics.destroy()
         logging.getLogger(PACKAGE).removeHandler(self._log_handler)

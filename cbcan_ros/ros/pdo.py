@@ -45,7 +45,8 @@ def topic(node_id: int, direction: str) -> str:
     return f'~/node_{node_id}/{direction}'
 
 
-def _stamp(monotonic: float) -> Time:
+def stamp_of(monotonic: float) -> Time:
+    """Return the ROS time of a frame received at ``monotonic`` (``time.monotonic()``)."""
     wall = wall_clock(monotonic)
     whole = math.floor(wall)
     return Time(sec=whole, nanosec=min(int((wall - whole) * 1e9), 999_999_999))
@@ -66,7 +67,7 @@ def pdo_message(received: ReceivedPdo, reused: Optional[Pdo] = None) -> Pdo:
                                         name=entry.name, data_type=entry.data_type,
                                         bits=entry.bits)
                                for entry in mapping.entries])
-    message.stamp = _stamp(received.timestamp)
+    message.stamp = stamp_of(received.timestamp)
     message.data = received.data
     for entry, decoded in zip(message.entries, received.entries, strict=True):
         entry.value = decoded.value

@@ -1,0 +1,277 @@
+"""The drives as ROS joints: states, targets, commands and moves mapped onto the drive service.
+
+- ``~/joint_states`` (``sensor_msgs/JointState``): every drive's position, velocity and effort
+  in joint units, once per feedback cycle (every SYNC with ``sync.period``, else 50 Hz),
+  stamped with the host's receive time of the newest feedback in it.
+- ``~/node_<id>/drive_state`` (``cbcan_ros/DriveState``, reliable, transient local): on every
+  change of state, mode, fault or halt.
+- ``~/node_<id>/target`` (``std_msgs/Float64``) and ``~/joint_commands`` (``JointState``, by
+  joint name): the target of each drive's present mode, in joint units. Subscribed best
+  effort, so that every publisher matches (a reliable one too); the newest target is what
+  counts, and the command timeout catches a stream that stops.
+- ``~/drive_command`` (``cbcan_ros/DriveCommand``) and the action ``~/move``
+  (``cbcan_ros/DriveMove``), answered when the drive's statusword shows the result.
+
+``~/joint_states`` and ``~/joint_commands`` are what ros2_control's topic-based hardware
+interface publishes and reads, so the joints can run under ros2_control controllers.
+"""
+
+from concurrent.futures import Future
+import logging
+import math
+import re
+import threading
+from typing import Callable, Dict, Optional
+
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future as RclpyFuture
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
+
+from ..action import DriveMove
+from ..core import cia402
+from ..core.drive import DriveService
+from ..core.drive_status import DriveResult, DriveStatus, failed
+from ..msg import DriveState
+from .drive_parameters import Joint
+from .pdo import stamp_of
+
+LOGGER = logging.getLogger(__name__)
+
+STATE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+JOINT_STATES_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                              reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.VOLATILE)
+TARGET_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                        reliability=ReliabilityPolicy.BEST_EFFORT,
+                        durability=DurabilityPolicy.VOLATILE)
+
+
+def fill_command(result: DriveResult, response) -> None:
+    """Write a DriveResult into a ``DriveCommand`` response."""
+    status = result.status
+    response.success = result.success
+    response.message = result.message
+    response.state = status.state
+    response.statusword = status.statusword
+    response.mode = status.mode
+    response.error_code = status.error_code
+    response.abort_code = result.abort_code
+
+
+class DriveTopics:
+    """The topics and the move action of the drives of ``service``, by joint.
+
+    ``refusal()`` returns why the node takes no request now (inactive), or None.
+    """
+
+    def __init__(self, node: Node, service: DriveService, joints: Dict[int, Joint],
+                 refusal: Callable[[], Optional[str]]):
+        self._node = node
+        self._service = service
+        self._joints = joints
+        self._by_name = {joint.name: joint for joint in joints.values()}
+        self._refusal = refusal
+        self._logged: set = set()
+        self._cancels: Dict[bytes, Callable[[], None]] = {}
+        self._states = {node_id: node.create_publisher(
+            DriveState, f'~/node_{node_id}/drive_state', STATE_QOS) for node_id in joints}
+        self._joint_states = (node.create_publisher(JointState, '~/joint_states',
+                                                    JOINT_STATES_QOS) if joints else None)
+        self._subscriptions = [
+            node.create_subscription(Float64, f'~/node_{node_id}/target',
+                                     lambda message, n=node_id: self._on_target(n, message),
+                                     TARGET_QOS)
+            for node_id in joints]
+        if joints:
+            self._subscriptions.append(node.create_subscription(
+                JointState, '~/joint_commands', self._on_joint_commands, TARGET_QOS))
+        self._action = ActionServer(node, DriveMove, '~/move',
+                                    execute_callback=self._execute_move,
+                                    goal_callback=lambda goal: GoalResponse.ACCEPT,
+                                    cancel_callback=self._on_cancel,
+                                    callback_group=ReentrantCallbackGroup())
+        # Changes are published by a thread of their own, not by the bus thread that sees
+        # them: the newest status of each drive that changed, every change covered.
+        self._changed: Dict[int, DriveStatus] = {}
+        self._wake = threading.Condition()
+        self._closing = False
+        self._thread = threading.Thread(target=self._publish_changes, name='drive states',
+                                        daemon=True)
+        self._thread.start()
+        service.add_listener(self._on_change)
+        service.add_cycle_listener(self._publish_joint_states)
+        for status in service.statuses():
+            self._on_change(status)
+
+    def destroy(self) -> None:
+        """Stop publishing and take the topics and the action away (after the bus closed)."""
+        with self._wake:
+            self._closing = True
+            self._wake.notify()
+        self._thread.join(timeout=2.0)
+        self._action.destroy()
+        for publisher in [*self._states.values(), self._joint_states]:
+            if publisher is not None:
+                self._node.destroy_publisher(publisher)
+        for subscription in self._subscriptions:
+            self._node.destroy_subscription(subscription)
+
+    def start_command(self, request) -> 'Future[DriveResult]':
+        """Run a ``DriveCommand`` request; the future resolves to its answer."""
+        refusal = self._refusal()
+        if refusal:
+            future: Future = Future()
+            future.set_result(failed(DriveStatus(request.node_id), refusal, 0x08000022))
+            return future
+        return self._service.command(request.node_id, request.command, request.mode,
+                                     request.timeout)
+
+    # Publishing.
+
+    def _on_change(self, status: DriveStatus) -> None:
+        with self._wake:
+            self._changed[status.node_id] = status
+            self._wake.notify()
+
+    def _publish_changes(self) -> None:
+        while True:
+            with self._wake:
+                while not self._changed and not self._closing:
+                    self._wake.wait()
+                if self._closing:
+                    return
+                changed, self._changed = self._changed, {}
+            if self._refusal() is None:
+                for status in changed.values():
+                    self._states[status.node_id].publish(self._state_message(status))
+
+    def _state_message(self, status: DriveStatus) -> DriveState:
+        joint = self._joints[status.node_id]
+        return DriveState(
+            stamp=stamp_of(status.received) if status.received else
+            self._node.get_clock().now().to_msg(),
+            node_id=status.node_id, joint=joint.name, state=status.state,
+            statusword=status.statusword, mode=status.mode,
+            position=float(joint.position(status.position)),
+            velocity=float(joint.velocity(status.velocity)),
+            effort=float(joint.effort(status.torque)), error_code=status.error_code,
+            error=status.error, target_reached=status.target_reached, halted=status.halted)
+
+    def _publish_joint_states(self) -> None:
+        if self._joint_states is None or self._refusal() is not None:
+            return
+        statuses = self._service.statuses()
+        newest = max(status.received for status in statuses)
+        message = JointState()
+        message.header.stamp = (stamp_of(newest) if newest
+                                else self._node.get_clock().now().to_msg())
+        joints = [self._joints[status.node_id] for status in statuses]
+        message.name = [joint.name for joint in joints]
+        message.position = [float(joint.position(s.position))
+                            for joint, s in zip(joints, statuses, strict=True)]
+        message.velocity = [float(joint.velocity(s.velocity))
+                            for joint, s in zip(joints, statuses, strict=True)]
+        message.effort = [float(joint.effort(s.torque))
+                          for joint, s in zip(joints, statuses, strict=True)]
+        self._joint_states.publish(message)
+
+    # Targets.
+
+    def _on_target(self, node_id: int, message: Float64) -> None:
+        self._send_target(self._joints[node_id], message.data, f'node_{node_id}/target')
+
+    def _on_joint_commands(self, message: JointState) -> None:
+        for position, name in enumerate(message.name):
+            joint = self._by_name.get(name)
+            if joint is None:
+                self._log_refusal(f"joint_commands: joint {name!r} is no drive's (joints: "
+                                  f'{", ".join(self._by_name) or "none"})')
+                continue
+            mode = self._service.status(joint.node_id).mode
+            field = {cia402.TARGET_POSITION: 'position', cia402.TARGET_VELOCITY: 'velocity',
+                     cia402.TARGET_TORQUE: 'effort'}.get(cia402.TARGET_OF_MODE.get(mode))
+            values = getattr(message, field) if field else ()
+            if field is None or position >= len(values):
+                self._log_refusal(f'joint_commands: joint {name!r} (node {joint.node_id}) is '
+                                  f'in {cia402.mode_name(mode)}, which takes '
+                                  f'{field or "no target"}, and the message has none for it')
+                continue
+            self._send_target(joint, values[position], 'joint_commands')
+
+    def _send_target(self, joint: Joint, value: float, topic: str) -> None:
+        refusal = self._refusal()
+        if refusal:
+            self._log_refusal(f'{topic}: {refusal}')
+            return
+        if not math.isfinite(value):
+            self._log_refusal(f'{topic}: target {value} for node {joint.node_id} is not a '
+                              f'finite number; nothing was sent')
+            return
+        mode = self._service.status(joint.node_id).mode
+        result = self._service.target(joint.node_id, joint.to_device(mode, value))
+        if not result.success:
+            self._log_refusal(f'{topic}: {result.message}')
+
+    def _log_refusal(self, problem: str) -> None:
+        """Log a refused target once per kind (numbers aside): a stream is not a log flood."""
+        kind = re.sub(r'[-\d.e+]+', '#', problem)[:100]
+        if kind not in self._logged:
+            self._logged.add(kind)
+            LOGGER.warning('%s (later ones like it are not logged)', problem)
+
+    # The move action.
+
+    def _on_cancel(self, goal_handle) -> CancelResponse:
+        cancel = self._cancels.get(bytes(goal_handle.goal_id.uuid))
+        if cancel is None:
+            return CancelResponse.REJECT
+        cancel()
+        return CancelResponse.ACCEPT
+
+    async def _execute_move(self, goal_handle):
+        goal = goal_handle.request
+        joint = self._joints.get(goal.node_id)
+        refusal = self._refusal()
+        if refusal is None and joint is None:
+            refusal = (f'node {goal.node_id} is not a drive (parameter drives.nodes: '
+                       f'{sorted(self._joints) or "none"}); nothing was sent')
+        if refusal is None and not (math.isfinite(goal.position)
+                                    and math.isfinite(goal.velocity)):
+            refusal = (f'position {goal.position} and velocity {goal.velocity} must be '
+                       f'finite numbers; nothing was sent')
+        if refusal:
+            goal_handle.abort()
+            return DriveMove.Result(success=False, message=refusal)
+        position = round(joint.to_device(cia402.PROFILE_POSITION, goal.position,
+                                         goal.relative))
+        velocity = round(abs(goal.velocity * joint.velocity_scale))
+
+        def feedback(status: DriveStatus) -> None:
+            goal_handle.publish_feedback(DriveMove.Feedback(
+                position=float(joint.position(status.position)),
+                velocity=float(joint.velocity(status.velocity))))
+
+        future, cancel = self._service.move(joint.node_id, position, goal.relative, velocity,
+                                            feedback)
+        key = bytes(goal_handle.goal_id.uuid)
+        self._cancels[key] = cancel
+        done = RclpyFuture()
+        future.add_done_callback(lambda finished: done.set_result(finished.result()))
+        try:
+            result = await done
+        finally:
+            self._cancels.pop(key, None)
+        if goal_handle.is_cancel_requested:
+            goal_handle.canceled()
+        elif result.success:
+            goal_handle.succeed()
+        else:
+            goal_handle.abort()
+        return DriveMove.Result(success=result.success, message=result.message,
+                                position=float(joint.position(result.status.position)),
+                                error_code=result.status.error_code)

@@ -1,0 +1,178 @@
+"""Drives run as ROS joints: commands, targets, joint states, moves, faults, bad input.
+
+Each test starts a gateway with one simulated CiA 402 drive (durand) on a bus of its own and
+works it as a robot program would: ``~/drive_command``, ``~/node_<id>/target``,
+``~/joint_commands``, ``~/joint_states``, ``~/node_<id>/drive_state`` and the ``~/move``
+action. What the drive did is read from the drive itself; conditions are waited for with
+generous ceilings, never proved by sleeping.
+"""
+
+import math
+import threading
+
+import pytest
+from rclpy.action import ActionClient
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64
+
+from cbcan_ros.action import DriveMove
+from cbcan_ros.msg import DriveState
+from cbcan_ros.ros.drives import STATE_QOS
+from cbcan_ros.simulation.durand_drive import DurandDrive
+from cbcan_ros.simulation.durand_pdos import PdoConfig
+
+from conftest import Harness, new_channel, wait_for_future, wait_until
+
+NODE = 7
+JOINT = 'shoulder'
+SCALE = 1000.0  # counts per rad, counts/s per rad/s
+PP, PV, HOMING, CSP, CSV, CST = 1, 3, 6, 8, 9, 10
+WAIT = 15.0
+LOCAL_CONTROL = 0x08000021
+
+PDOS = (
+    PdoConfig('tpdo', 1, ((0x6041, 0), (0x6061, 0), (0x6077, 0)), 255, 20),
+    PdoConfig('tpdo', 2, ((0x6064, 0), (0x606C, 0)), 255, 10),
+    PdoConfig('rpdo', 1, ((0x6040, 0), (0x607A, 0), (0x6060, 0)), 255),
+    PdoConfig('rpdo', 2, ((0x60FF, 0), (0x6071, 0)), 255),
+)
+
+
+class Rig:
+    """A gateway, its drive, and a robot program's view: topics, services, the action."""
+
+    def __init__(self, start_durand, pdos=PDOS, **parameters):
+        channel = new_channel()
+        self.drive = start_durand(NODE, kind=DurandDrive, channel=channel, pdos=pdos)
+        wait_until(lambda: self.drive.running, WAIT, 'the drive receiving')
+        self.gateway = Harness({'can.channel': channel, 'simulation.devices': None,
+                                'drives.nodes': [NODE], f'node_{NODE}.joint': JOINT,
+                                f'node_{NODE}.position_scale': SCALE,
+                                f'node_{NODE}.velocity_scale': SCALE,
+                                'drives.command_timeout': 0.0, **parameters})
+        node = self.gateway.client_node
+        self._lock = threading.Lock()
+        self.states, self.joint_states = [], []
+        node.create_subscription(DriveState, f'/cbcan/node_{NODE}/drive_state',
+                                 lambda m: self._keep(self.states, m), STATE_QOS)
+        node.create_subscription(JointState, '/cbcan/joint_states',
+                                 lambda m: self._keep(self.joint_states, m), 10)
+        self.target = node.create_publisher(Float64, f'/cbcan/node_{NODE}/target', 10)
+        self.commands = node.create_publisher(JointState, '/cbcan/joint_commands', 10)
+        self.mover = ActionClient(node, DriveMove, '/cbcan/move')
+        if not parameters.get('read_only'):  # PDOs flow in OPERATIONAL; else SDO reads
+            assert self.gateway.call('nmt_command', node_id=NODE, command=1).success
+        wait_until(lambda: self.latest_state() not in (None, 'UNKNOWN'), WAIT,
+                   'the drive state published')
+
+    def _keep(self, kept: list, message) -> None:
+        with self._lock:
+            kept.append(message)
+
+    def latest_state(self):
+        with self._lock:
+            return self.states[-1].state if self.states else None
+
+    def command(self, command: str, mode: int = 0, **fields):
+        return self.gateway.call('drive_command', node_id=fields.pop('node_id', NODE),
+                                 command=command, mode=mode, **fields)
+
+    def enable(self, mode: int):
+        response = self.command('enable', mode)
+        assert response.success, response.message
+        return response
+
+    def close(self):
+        self.gateway.close()
+
+
+@pytest.fixture
+def rig(ros_context, start_durand):
+    made = []
+
+    def factory(**options):
+        made.append(Rig(start_durand, **options))
+        return made[-1]
+    yield factory
+    for each in made:
+        each.close()
+
+
+def test_enable_answers_once_the_drive_is_operation_enabled_in_the_mode(rig):
+    axis = rig()
+    response = axis.enable(CSV)
+    assert (response.state, response.mode) == ('OPERATION_ENABLED', CSV)
+    assert axis.drive.drive_state == 'OPERATION_ENABLED'
+    assert response.statusword & 0x6F == 0x27
+    wait_until(lambda: axis.latest_state() == 'OPERATION_ENABLED', WAIT, 'drive_state')
+
+
+def test_a_velocity_target_moves_the_drive_in_joint_units(rig):
+    axis = rig()
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=1.5))
+    wait_until(lambda: axis.drive.velocity == 1500, WAIT, 'the drive at 1500 counts/s')
+    wait_until(lambda: axis.joint_states and axis.joint_states[-1].velocity[0] == 1.5, WAIT,
+               'joint_states showing 1.5 rad/s')
+    assert axis.joint_states[-1].name == [JOINT]
+
+
+def test_joint_commands_by_name_reach_the_drive(rig):
+    axis = rig()
+    axis.enable(CSP)
+    start = axis.drive.position
+    axis.commands.publish(JointState(name=[JOINT], position=[start / SCALE + 0.25]))
+    wait_until(lambda: axis.drive.position == start + 250, WAIT, 'the drive 250 counts on')
+
+
+def test_a_fault_shows_its_error_and_refuses_enable_until_reset(rig):
+    axis = rig()
+    axis.enable(CSV)
+    axis.drive.inject_fault(0x2310)
+    wait_until(lambda: axis.latest_state() == 'FAULT', WAIT, 'drive_state FAULT')
+    assert axis.states[-1].error_code == 0x2310  # from its EMCY, before 0x603F is read
+    assert 'over-current' in axis.states[-1].error
+    refused = axis.command('enable', CSV)
+    assert not refused.success and '0x2310' in refused.message
+    assert axis.drive.drive_state == 'FAULT'
+    reset = axis.command('fault_reset')
+    assert reset.success, reset.message
+    assert reset.state == 'SWITCH_ON_DISABLED'
+    axis.enable(CSV)
+
+
+def test_a_move_succeeds_on_target_reached_at_the_goal(rig):
+    axis = rig()
+    axis.enable(PP)
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    goal = wait_for_future(axis.mover.send_goal_async(
+        DriveMove.Goal(node_id=NODE, position=2.0, velocity=20.0)), WAIT)
+    assert goal.accepted
+    result = wait_for_future(goal.get_result_async(), WAIT).result
+    assert result.success, result.message
+    assert axis.drive.position == 2000
+    assert math.isclose(result.position, 2.0)
+
+
+@pytest.mark.parametrize('fields, named', [
+    (dict(command='spin'), 'command'),
+    (dict(command='enable', mode=2), 'mode 2'),
+    (dict(command='enable', node_id=9), 'not a drive'),
+    (dict(command='set_mode'), 'set_mode needs a mode'),
+    (dict(command='halt'), 'enable first'),
+    (dict(command='enable', timeout=-1.0), 'timeout'),
+])
+def test_bad_requests_are_refused_naming_the_field(rig, fields, named):
+    axis = rig()
+    command = fields.pop('command')
+    response = axis.command(command, **fields)
+    assert not response.success
+    assert named in response.message and 'nothing was sent' in response.message
+    assert axis.drive.drive_state == 'SWITCH_ON_DISABLED'
+
+
+def test_read_only_refuses_every_command(rig):
+    axis = rig(read_only=True)
+    response = axis.command('enable', CSV)
+    assert not response.success and response.abort_code == LOCAL_CONTROL
+    assert axis.drive.drive_state == 'SWITCH_ON_DISABLED'
