@@ -70,24 +70,29 @@ class Rig:
             kept.append(message)
 
     def latest_state(self):
+        """Return the state of the latest drive_state message, None before one."""
         with self._lock:
             return self.states[-1].state if self.states else None
 
     def command(self, command: str, mode: int = 0, **fields):
+        """Call ~/drive_command; return the response."""
         return self.gateway.call('drive_command', node_id=fields.pop('node_id', NODE),
                                  command=command, mode=mode, **fields)
 
     def enable(self, mode: int):
+        """Enable in ``mode``; it must succeed."""
         response = self.command('enable', mode)
         assert response.success, response.message
         return response
 
     def close(self):
+        """Stop the gateway."""
         self.gateway.close()
 
 
 @pytest.fixture
 def rig(ros_context, start_durand):
+    """Return ``rig(**parameters)``: a gateway with one simulated drive, closed after."""
     made = []
 
     def factory(**options):
