@@ -11,6 +11,8 @@ machine delays beats, and how punctual they are is the producer's grid, checked 
 its own.
 """
 
+import signal
+import struct
 import subprocess
 import threading
 import time
@@ -26,6 +28,8 @@ from cbcan_ros.core.bus import BusDown
 from cbcan_ros.core.heartbeat_producer import HeartbeatProducer, next_beat
 from cbcan_ros.ros.config import NodeParameters
 from cbcan_ros.ros.parameter_checks import ConfigurationError
+from cbcan_ros.simulation.durand_drive import DurandDrive
+from cbcan_ros.srv import SdoWrite
 
 from conftest import wait_until
 from node_process import (
@@ -248,6 +252,40 @@ def test_the_managed_node_beats_pre_operational_while_inactive(
     silent_after(recorder, 'cleanup')
     node.stop()
     assert node.process.returncode == 0, node.output()
+
+
+def test_a_drive_watching_the_heartbeat_faults_when_the_gateway_dies(
+        start_node, client_node, recorded_bus, start_durand):
+    # What the heartbeat is for: the simulated CiA 402 drive's consumer (0x1016) watches the
+    # gateway, its abort connection option (0x6007) is "fault"; the gateway's process is
+    # killed (no shutdown code runs) and the drive stops by itself.
+    group, port, recorder = recorded_bus
+    drive_id, consumer_ms = 7, 1000  # 20 periods: a busy machine never looks like a loss
+    drive = start_durand(drive_id, kind=DurandDrive, interface='udp_multicast', channel=group,
+                         bus_options={'port': port})
+    name = f'{namespace()}/cbcan'
+    node = start_node(arguments(name, '-p', 'can.interface:=udp_multicast',
+                                '-p', f'can.channel:={group}',
+                                '-p', f'heartbeat.node_id:={OWN_ID}',
+                                '-p', f'heartbeat.period:={PERIOD}'), port)
+    sdo_write = service_client(client_node, SdoWrite, f'{name}/sdo_write', node)
+    for index, subindex, data in (
+            (0x6007, 0, struct.pack('<h', 1)),                              # fault signal
+            (0x1016, 1, struct.pack('<I', OWN_ID << 16 | consumer_ms)),
+            (0x6060, 0, struct.pack('<b', 9)),                              # CSV
+            (0x6040, 0, struct.pack('<H', 0x06)), (0x6040, 0, struct.pack('<H', 0x07)),
+            (0x6040, 0, struct.pack('<H', 0x0F))):
+        answer = call(sdo_write, SdoWrite.Request(node_id=drive_id, index=index,
+                                                  subindex=subindex, data=list(data)),
+                      f'write 0x{index:04X}', node)
+        assert answer.success, answer.message
+    assert drive.drive_state == 'OPERATION_ENABLED'
+    time.sleep(2 * consumer_ms / 1000)
+    assert drive.drive_state == 'OPERATION_ENABLED', 'the drive lost a living gateway'
+    node.process.send_signal(signal.SIGKILL)
+    node.process.wait(ANSWER)
+    wait_until(lambda: drive.drive_state == 'FAULT', ANSWER, 'the drive in FAULT')
+    assert drive.value(0x603F) == struct.pack('<H', 0x8130)  # heartbeat error
 
 
 # A node id a device has.
