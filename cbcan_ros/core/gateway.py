@@ -23,6 +23,7 @@ from .canopen_gaps.sdo_client import StrictSdoClient
 from .drive import DriveService
 from .drive_status import DriveSettings
 from .emcy import EmcyMonitor
+from .heartbeat_producer import HeartbeatProducer
 from .lss_frames import is_all_waiting, probe_wait
 from .lss_master import LssMaster
 from .pdo import PdoService
@@ -66,6 +67,8 @@ class GatewayConfig:
     device_files: Dict[int, str] = field(default_factory=dict)  # node id: EDS/DCF path
     sync_period: float = 0.0
     sync_counter_overflow: int = 0
+    heartbeat_node_id: int = 0  # the gateway's own heartbeat (0x700 + id); 0: none
+    heartbeat_period: float = 0.1
     drives: DriveSettings = DriveSettings()  # its nodes are watched and PDO-served as well
 
 
@@ -96,11 +99,12 @@ def _variable(name, index, subindex, data_type, access, default):
     return variable
 
 
-def own_dictionary() -> canopen.LocalNode:
+def own_dictionary(heartbeat_time: int = 0) -> canopen.LocalNode:
     """Build the gateway's own object dictionary (node id 0 in the services).
 
-    It is not on the bus: the gateway has no node id of its own. 0x1017 is writable as
-    CiA 301 requires and keeps its value, but no heartbeat is produced from it.
+    The dictionary is not on the bus: its services answer as node 0 whatever the node id of
+    the gateway's heartbeat. 0x1017 holds ``heartbeat_time`` (ms) at start and is writable as
+    CiA 301 requires; it only informs: the heartbeat follows its parameters, not writes.
     """
     dictionary = od.ObjectDictionary()
     dictionary.add_object(_variable('Device type', 0x1000, 0, od.UNSIGNED32, 'ro', 0))
@@ -110,7 +114,7 @@ def own_dictionary() -> canopen.LocalNode:
     dictionary.add_object(_variable('Manufacturer software version', 0x100A, 0,
                                     od.VISIBLE_STRING, 'const', VERSION))
     dictionary.add_object(_variable('Producer heartbeat time', 0x1017, 0,
-                                    od.UNSIGNED16, 'rw', 0))
+                                    od.UNSIGNED16, 'rw', heartbeat_time))
     identity = od.ODRecord('Identity object', 0x1018)
     for subindex, name, data_type, value in (
             (0, 'Highest sub-index supported', od.UNSIGNED8, 4),
@@ -138,10 +142,16 @@ class Gateway:
         self.network = canopen.Network()
         self.bus = BusSupervisor(self.network, self._open_bus,
                                  f'{config.interface}:{config.channel}')
-        self.dictionary = own_dictionary()
+        self.heartbeat = HeartbeatProducer(self.bus, config.heartbeat_node_id,
+                                           config.heartbeat_period)
+        own_id = config.heartbeat_node_id
+        self.dictionary = own_dictionary(round(config.heartbeat_period * 1000) if own_id else 0)
         drives = config.drives.node_ids
+        # The gateway's own heartbeat comes back on buses that echo (udp_multicast): it is no
+        # device, and LSS must never give its node id to one.
         self.monitor = nmt.HeartbeatMonitor(self.network, config.heartbeat_timeout,
-                                            sorted({*config.expected_nodes, *drives}))
+                                            sorted({*config.expected_nodes, *drives}),
+                                            ignored=(own_id,))
         self._guarding = nmt.NodeGuarding(self.network, config.guarded_nodes,
                                           config.guard_period)
         self.emcy = EmcyMonitor(self.network)
@@ -165,8 +175,9 @@ class Gateway:
             self.network, self._deadlines,
             probe_wait(config.interface, config.bitrate, config.lss_probe_timeout),
             used_ids=lambda: {s.node_id for s in self.monitor.statuses()}.union(
-                config.guarded_nodes),
-            detected=lambda node_id: self.monitor.status(node_id).detected,
+                config.guarded_nodes, (own_id,) if own_id else ()),
+            detected=lambda node_id: (bool(own_id) and node_id == own_id
+                                      or self.monitor.status(node_id).detected),
             refusal=self._lss_refusal)
         self._channels: Dict[int, SdoChannel] = {}
         self._lock = threading.Lock()
@@ -195,6 +206,11 @@ class Gateway:
         self._guarding.start()
         self.lss.start()
         self.bus.start()
+        self.heartbeat.start()  # on the open bus, so the first beat goes out
+
+    def set_operational(self, active: bool) -> None:
+        """Say OPERATIONAL (active) or PRE_OPERATIONAL (a managed node inactive) in heartbeats."""
+        self.heartbeat.set_operational(active)
 
     def stop(self) -> None:
         """Answer every waiting call, abort running transfers, then close the bus.
@@ -213,6 +229,9 @@ class Gateway:
         with self._lock:
             self._stopping_drives = False
             channels = list(self._channels.values())
+        # The drives were told to stop before their heartbeat consumers see the gateway fall
+        # silent; then no heartbeat frame after the first moment of shutdown.
+        self.heartbeat.stop()
         self.pdo.stop()
         self.sync.stop()
         self.bus.restrict_sending(_closes_a_running_operation, SHUTTING_DOWN)

@@ -93,11 +93,15 @@ class HeartbeatMonitor:
     """Tracks the NMT state of every node that sends heartbeats, boot-ups or guarding replies.
 
     Listeners are called (from a bus or watcher thread, without locks held) whenever a node
-    appears, changes state, or times out.
+    appears, changes state, or times out. Node ids in ``ignored`` (the gateway's own
+    heartbeat) are not listened to.
     """
 
-    def __init__(self, network, timeout: float, expected_nodes: Iterable[int] = ()):
+    def __init__(self, network, timeout: float, expected_nodes: Iterable[int] = (),
+                 ignored: Iterable[int] = ()):
         self._network = network
+        ignored = set(ignored)
+        self._heard_ids = [node_id for node_id in range(1, 128) if node_id not in ignored]
         self._timeout = timeout
         self._nodes: Dict[int, _Entry] = {node_id: _Entry() for node_id in expected_nodes}
         self._listeners: List[Callable[[], None]] = []
@@ -116,14 +120,14 @@ class HeartbeatMonitor:
 
     def start(self) -> None:
         """Listen to every heartbeat COB-ID and start watching for timeouts."""
-        for node_id in range(1, 128):
+        for node_id in self._heard_ids:
             self._network.subscribe(HEARTBEAT_COB_BASE + node_id, self._on_frame)
         self._running = True
         self._watcher.start()
 
     def stop(self) -> None:
         """Stop listening and watching."""
-        for node_id in range(1, 128):
+        for node_id in self._heard_ids:
             self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_frame)
         with self._changed:
             self._running = False

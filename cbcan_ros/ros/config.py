@@ -99,6 +99,20 @@ class NodeParameters:
                       'Seconds without heartbeat, boot-up or guarding reply after which a '
                       'node is NOT_DETECTED',
                       floating_point_range=_between(0.01, 3600.0))
+        self._declare('heartbeat.node_id', 0,
+                      "Node id (1..127) of the gateway's own heartbeat (COB-ID 0x700 + id), "
+                      'so drives can watch the gateway with their heartbeat consumer (0x1016 '
+                      '= id << 16 | time in ms) and stop by themselves when it falls silent. '
+                      'It says OPERATIONAL while the gateway serves, PRE_OPERATIONAL while a '
+                      'managed node is inactive, and stops at shutdown. No device may use '
+                      "this id. 0 = no heartbeat. Object 0x1017 of node 0 (the gateway's own "
+                      'dictionary) shows heartbeat.period in ms and only informs: writing it '
+                      'does not change the heartbeat',
+                      integer_range=[IntegerRange(from_value=0, to_value=127, step=0)])
+        self._declare('heartbeat.period', 0.1,
+                      "Seconds between the gateway's own heartbeats (heartbeat.node_id); give "
+                      "drives a heartbeat consumer time of 2 to 3 times this",
+                      floating_point_range=_between(0.01, 60.0))
         self._declare('node_guarding', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) without heartbeat producer to poll by node guarding',
                       additional_constraints=checks.NODE_IDS)
@@ -165,10 +179,13 @@ class NodeParameters:
         simulated = self.node_ids('simulation.devices')
         pdo_nodes = self.node_ids('pdo.nodes')
         drives = drive_parameters.settings(
-            value, self.node_ids('drives.nodes'), self._optional('heartbeat.node_id', 0),
-            self._optional('heartbeat.period', 0.1), value('sync.period'))
+            value, self.node_ids('drives.nodes'), value('heartbeat.node_id'),
+            value('heartbeat.period'), value('sync.period'))
         self.joints()
         checks.check_sync(value('sync.period'), value('sync.counter_overflow'))
+        checks.check_own_node_id(value('heartbeat.node_id'), {
+            'nodes': expected, 'node_guarding': guarded, 'pdo.nodes': pdo_nodes,
+            'simulation.devices': simulated, 'drives.nodes': list(drives.node_ids)})
         checks.check_file('simulation.eds', value('simulation.eds'))
         self.check_device_files()  # the core does not use them; a bad one stops the node here
         self.warnings = [warning for warning in (
@@ -204,18 +221,18 @@ class NodeParameters:
                           if value(device_file_parameter(node_id))},
             sync_period=value('sync.period'),
             sync_counter_overflow=value('sync.counter_overflow'),
+            heartbeat_node_id=value('heartbeat.node_id'),
+            heartbeat_period=value('heartbeat.period'),
             drives=drives)
 
     def joints(self) -> Dict[int, drive_parameters.Joint]:
         """Return every drive's joint (name, scales); raise ConfigurationError when wrong."""
         return drive_parameters.joints(self.value, self.node_ids('drives.nodes'))
 
-    def _optional(self, name: str, default):
-        return self._node.get_parameter_or(name, Parameter(name, value=default)).value
-
     def _given_ids(self, name: str) -> List[int]:
         """Return the node ids given for ``name`` that can name parameters (1..127)."""
-        return [node_id for node_id in self._optional(name, []) or [] if 1 <= node_id <= 127]
+        given = self._node.get_parameter_or(name, Parameter(name, value=[])).value or []
+        return [node_id for node_id in given if 1 <= node_id <= 127]
 
     def _strings(self, name: str) -> List[str]:
         return list(self._node.get_parameter_or(name, Parameter(name, value=[])).value or [])

@@ -56,7 +56,8 @@ class Diagnostics:
 
     - ``<node>: CAN bus``: ERROR while the bus is down (the message says why), WARN when error
       frames arrived since the last publication, else OK. Frame rates are taken between two
-      publications.
+      publications. It also shows the gateway's own heartbeat (node id, period, state, frames
+      sent), which the bus carries or not.
     - ``<node>: node <id>`` for every device that is expected (parameter ``nodes``), was
       heard, sent an EMCY or was sent an SDO request: ERROR when expected but silent
       (NOT_DETECTED), STALE when a device that is not expected fell silent, WARN while it has
@@ -131,7 +132,16 @@ class Diagnostics:
             'Frames sent': status.frames_sent,
             'Error frames': status.error_frames,
             'Frames dropped': status.frames_dropped,
+            **self._heartbeat_values(),
         })
+
+    def _heartbeat_values(self) -> Dict[str, object]:
+        heartbeat = self._gateway.heartbeat.status()
+        if not heartbeat.node_id:
+            return {'Own heartbeat': 'none (heartbeat.node_id is 0)'}
+        return {'Own heartbeat': f'node {heartbeat.node_id} every {heartbeat.period * 1000:g} '
+                                 f'ms, {heartbeat.state_name}',
+                'Own heartbeats sent': heartbeat.sent}
 
     def _sync_status(self, sync: SyncStatus) -> DiagnosticStatus:
         if sync.running:

@@ -171,6 +171,7 @@ class GatewayInterface:
         # Before the bus opens, so an EMCY a device sends as it boots is published too.
         self._emcy = EmcyPublisher(node)
         self.gateway.emcy.add_listener(self._publish_emcy)
+        self.gateway.set_operational(active)  # a managed node's first heartbeat says so
         self.gateway.start()
         for device in self.simulated_devices:
             device.start()
@@ -240,6 +241,7 @@ class GatewayInterface:
     def activate(self) -> None:
         """Serve calls and publish (a managed node's activate transition)."""
         self.active = True
+        self.gateway.set_operational(True)
         self._publish_states()
 
     def deactivate(self) -> None:
@@ -249,6 +251,7 @@ class GatewayInterface:
         """
         self.active = False
         self.gateway.drives.pause('the gateway was deactivated')
+        self.gateway.set_operational(False)
 
     def shut_down(self) -> None:
         """Answer every waiting call ("shutting down"), abort running transfers, close the bus.

@@ -269,6 +269,23 @@ def check_sync(period: float, counter_overflow: int) -> None:
                                  '0 (SYNC without counter) or 2..240')
 
 
+def check_own_node_id(node_id: int, devices: Dict[str, List[int]]) -> None:
+    """Refuse a heartbeat node id of the gateway's that a device parameter lists too.
+
+    ``devices`` maps each parameter holding device node ids to its ids. Two nodes with one
+    node id share the COB-ID 0x700 + id: neither heartbeat could be told from the other.
+    """
+    if not node_id:
+        return
+    for name, node_ids in devices.items():
+        if node_id in node_ids:
+            raise ConfigurationError('heartbeat.node_id', node_id,
+                                     f'is also a device in {name} ({node_ids}): the '
+                                     f"gateway's heartbeat would share COB-ID "
+                                     f'0x{0x700 + node_id:03X} with it',
+                                     '0 (no heartbeat) or a node id no device on the bus uses')
+
+
 def pdo_configure_warning(configure: bool, without_file: List[int]) -> Optional[str]:
     """Return a warning when pdo.configure is set for devices that have no file to write."""
     if configure and without_file:
