@@ -40,10 +40,11 @@ from .drive_checks import (
     value_problem,
 )
 from .drive_commands import DriveCommands
-from .drive_objects import DriveObjects, FEEDBACK
+from .drive_cycle import FeedbackCycle
+from .drive_objects import decode, DriveObjects, FEEDBACK
 from .drive_safety import command_timed_out, stop_motion, watch_the_gateway
 from .drive_status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed
-from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED
+from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED, OPERATIONAL
 from .pdo_mapping import ReceivedPdo
 from .request_queue import resolved
 from .sdo import check_node_id
@@ -86,17 +87,15 @@ class DriveService:
         self._protection = write_protection
         self._lock = threading.RLock()
         self._drives = {
-            node_id: DriveRecord(node_id, DriveObjects(node_id, pdo, sdo_batch, sync_producing),
-                            DriveStatus(node_id))
+            node_id: DriveRecord(node_id, DriveObjects(
+                node_id, pdo, sdo_batch, sync_producing,
+                lambda n=node_id: monitor.status(n).state == OPERATIONAL), DriveStatus(node_id))
             for node_id in sorted(set(settings.node_ids))}
         self._listeners: List[Callable[[DriveStatus], None]] = []
-        self._cycle_listeners: List[Callable[[], None]] = []
         self._runner = CoroutineRunner('drives')
         self._commands = DriveCommands(self)
         self._closing = False
-        self._stop_cycle = threading.Event()
-        self._cycle = threading.Thread(target=self._run_cycles, name='drive cycle',
-                                       daemon=True)
+        self._cycle = FeedbackCycle(settings.feedback_period, self._tick)
         if self._drives:
             pdo.add_listener(self._on_pdo)
             monitor.add_listener(self._on_node_states)
@@ -112,7 +111,7 @@ class DriveService:
 
     def add_cycle_listener(self, listener: Callable[[], None]) -> None:
         """Call ``listener()`` once every feedback cycle (the joint states' rhythm)."""
-        self._cycle_listeners.append(listener)
+        self._cycle.add_listener(listener)
 
     def status(self, node_id: int) -> DriveStatus:
         """Return what is known of drive ``node_id`` now."""
@@ -146,7 +145,7 @@ class DriveService:
             if self._closing:
                 return
             self._closing = True
-        self._stop_cycle.set()
+        self._cycle.stop()
         self._runner.close()
         stop_motion(self._drives.values(), self.settings, self._lock, SHUTTING_DOWN)
         for node_id in self._drives:
@@ -295,7 +294,10 @@ class DriveService:
         drive = self._drives.get(received.mapping.node_id)
         if drive is None:
             return
-        values = {decoded.entry.index: int(decoded.value) for decoded in received.entries
+        # Decoded by the profile's types: without an EDS the PDO service takes every entry
+        # as unsigned, and a position below 0 would read as 2**32 - x.
+        values = {decoded.entry.index: decode(decoded.entry.index, decoded.data)
+                  for decoded in received.entries
                   if decoded.entry.index in FEEDBACK and decoded.entry.subindex == 0}
         if values:
             self._apply(drive, values, received.timestamp)
@@ -321,7 +323,7 @@ class DriveService:
                 drive.status = replace(drive.status, needs_enable=True, halted=False)
         if boot:
             self._wake(drive)
-        self._runner.call_soon(lambda: self._runner.submit(self._initial_read(drive, request)))
+        self._runner.submit(self._initial_read(drive, request))
 
     def _on_node_states(self) -> None:
         lost = []
@@ -365,7 +367,7 @@ class DriveService:
             changed = (old.state, old.mode, old.error_code, old.target_reached) != (
                 new.state, new.mode, new.error_code, new.target_reached)
         if new.faulted and not old.faulted:
-            self._runner.call_soon(lambda: self._runner.submit(self._read_error(drive)))
+            self._runner.submit(self._read_error(drive))
         if changed:
             self._notify(new)
         if cia402.STATUSWORD in values or changed:
@@ -428,33 +430,15 @@ class DriveService:
         LOGGER.error('drive %d FAULT: error code 0x%04X (%s); targets are refused until '
                      'fault_reset and enable', drive.node_id, status.error_code, status.error)
 
-    # The feedback cycle: SDO reads of what no TPDO brings, the command timeout, listeners.
+    # Each beat of the feedback cycle: SDO reads of what no TPDO brings, the command timeout.
 
-    def _run_cycles(self) -> None:
-        period = self.settings.feedback_period
-        next_cycle = time.monotonic()
-        failures = set()
-        while not self._stop_cycle.is_set():
-            for drive in self._drives.values():
-                self._poll(drive)
-                word = command_timed_out(drive, self.settings, self._lock)
-                if word is not None:
-                    self._notify(self.status(drive.node_id))
-                    drive.objects.write({cia402.CONTROLWORD: word}, DEFAULT_TIMEOUT)
-            for listener in self._cycle_listeners:
-                try:
-                    listener()
-                except Exception as error:  # noqa: BLE001 - it must not end the cycle
-                    kind = type(error).__name__
-                    if kind not in failures:  # once per kind: a cycle is 50 times a second
-                        failures.add(kind)
-                        LOGGER.error('a drive cycle listener failed (%s: %s); later failures '
-                                     'of this kind are not logged', kind, error)
-            next_cycle += period
-            now = time.monotonic()
-            if next_cycle < now:  # fell behind (a loaded machine): skip, do not catch up
-                next_cycle = now + period
-            self._stop_cycle.wait(next_cycle - now)
+    def _tick(self) -> None:
+        for drive in self._drives.values():
+            self._poll(drive)
+            word = command_timed_out(drive, self.settings, self._lock)
+            if word is not None:
+                self._notify(self.status(drive.node_id))
+                drive.objects.write({cia402.CONTROLWORD: word}, DEFAULT_TIMEOUT)
 
     def _poll(self, drive: DriveRecord) -> None:
         with self._lock:

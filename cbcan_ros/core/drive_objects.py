@@ -9,7 +9,9 @@ object the gateway has no commanded value for yet is not used (SDO instead).
 
 A synchronous RPDO is used only while the gateway produces SYNC: the PDO service then sends
 it right after a SYNC, and the drive applies it at the next one. Without SYNC it would never
-be applied, so its objects go by SDO.
+be applied, so its objects go by SDO. PDOs of either kind are used only while the drive is
+OPERATIONAL (CiA 301: a pre-operational device neither sends nor takes PDOs); the gateway
+never changes a drive's NMT state by itself, so a drive left pre-operational is run by SDO.
 """
 
 from concurrent.futures import Future
@@ -72,11 +74,14 @@ class DriveObjects:
     """The objects of drive ``node_id``: commanded values kept, reads and writes routed.
 
     ``sdo_batch`` is the gateway's (its SDO channels and write protection), ``pdo`` its PDO
-    service, ``sync_producing()`` whether the gateway produces SYNC now.
+    service, ``sync_producing()`` whether the gateway produces SYNC now, ``operational()``
+    whether the drive is OPERATIONAL.
     """
 
-    def __init__(self, node_id: int, pdo: PdoService, sdo_batch, sync_producing):
+    def __init__(self, node_id: int, pdo: PdoService, sdo_batch, sync_producing,
+                 operational):
         self.node_id = node_id
+        self._operational = operational
         self._pdo = pdo
         self._sdo_batch = sdo_batch
         self._sync_producing = sync_producing
@@ -95,7 +100,7 @@ class DriveObjects:
 
     def mapped_feedback(self) -> Set[int]:
         """Return the feedback objects the drive sends in an enabled, usable TPDO."""
-        if self.node_id not in self._pdo.node_ids:
+        if self.node_id not in self._pdo.node_ids or not self._operational():
             return set()
         tpdos, _ = self._pdo.mappings(self.node_id)
         return {entry.index for mapping in tpdos.values()
@@ -114,8 +119,10 @@ class DriveObjects:
         futures = []
         by_sdo = set(values)
         for number, indexes in self._rpdos_for(values, commanded).items():
+            # As bytes of the profile's types, whatever type the PDO service knows.
             futures.append(self._pdo.write(self.node_id, number, [
-                EntryValue(index, 0, commanded[index]) for index in indexes]))
+                EntryValue(index, 0, data=encode(index, commanded[index]))
+                for index in indexes]))
             by_sdo -= set(indexes)
         if by_sdo:
             futures.append(self._write_by_sdo([(index, data[index]) for index in sorted(
@@ -156,7 +163,7 @@ class DriveObjects:
     def _rpdos_for(self, values: Dict[int, int],
                    commanded: Dict[int, int]) -> Dict[int, List[int]]:
         """Return the usable RPDOs that carry some of ``values``: number -> objects mapped."""
-        if self.node_id not in self._pdo.node_ids:
+        if self.node_id not in self._pdo.node_ids or not self._operational():
             return {}
         _, rpdos = self._pdo.mappings(self.node_id)
         chosen: Dict[int, List[int]] = {}

@@ -1,0 +1,56 @@
+"""The drives' feedback cycle: one thread, one beat a period, on the host's monotonic clock.
+
+Each beat the drive service reads by SDO what no TPDO brings and watches the command
+timeout; then the listeners run (the ROS layer publishes ``~/joint_states``). Beats are due
+on absolute deadlines, so lateness never adds up; a beat missed on a loaded machine is
+skipped, not caught up in a burst.
+"""
+
+import logging
+import threading
+import time
+from typing import Callable, List
+
+LOGGER = logging.getLogger(__name__)
+
+
+class FeedbackCycle:
+    """Call ``tick()``, then every listener, once every ``period`` seconds once started."""
+
+    def __init__(self, period: float, tick: Callable[[], None]):
+        self._period = period
+        self._tick = tick
+        self._listeners: List[Callable[[], None]] = []
+        self._stopped = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='drive cycle', daemon=True)
+
+    def add_listener(self, listener: Callable[[], None]) -> None:
+        """Call ``listener()`` every beat, after the tick."""
+        self._listeners.append(listener)
+
+    def start(self) -> None:
+        """Start beating."""
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop beating (a beat in progress finishes)."""
+        self._stopped.set()
+
+    def _run(self) -> None:
+        due = time.monotonic()
+        failures = set()
+        while not self._stopped.is_set():
+            for step in [self._tick, *self._listeners]:
+                try:
+                    step()
+                except Exception as error:  # noqa: BLE001 - one failure must not end the cycle
+                    kind = type(error).__name__
+                    if kind not in failures:  # once per kind: there are 50 beats a second
+                        failures.add(kind)
+                        LOGGER.error('the drive cycle failed (%s: %s); later failures of '
+                                     'this kind are not logged', kind, error)
+            due += self._period
+            now = time.monotonic()
+            if due < now:
+                due = now + self._period
+            self._stopped.wait(due - now)
