@@ -155,6 +155,11 @@ class NodeParameters:
                       'Node ids (1..127) of simulated CANopen devices to put on the bus, for '
                       'trying the gateway without hardware; empty on a real bus',
                       additional_constraints=checks.NODE_IDS)
+        self._declare('simulation.drives', Parameter.Type.INTEGER_ARRAY,
+                      'Node ids (1..127) of simulated CiA 402 drives to put on the bus, with '
+                      'the PDOs a drive commonly has (needs the durand package); empty on a '
+                      'real bus',
+                      additional_constraints=checks.NODE_IDS)
         self._declare('simulation.eds', '',
                       'EDS file of the simulated devices; empty = the one shipped in config/')
         for node_id in self._listed_devices():
@@ -177,6 +182,8 @@ class NodeParameters:
         bus_options = checks.bus_options(self._strings('can.options'))
         expected, guarded = self.node_ids('nodes'), self.node_ids('node_guarding')
         simulated = self.node_ids('simulation.devices')
+        drives = self.node_ids('simulation.drives')
+        checks.check_simulated(simulated, drives)
         pdo_nodes = self.node_ids('pdo.nodes')
         drives = drive_parameters.settings(
             value, self.node_ids('drives.nodes'), value('heartbeat.node_id'),
@@ -192,7 +199,7 @@ class NodeParameters:
             checks.check_bitrate(interface, value('can.bitrate')),
             checks.check_guarding(guarded, expected, value('node_guarding_period'),
                                   value('heartbeat.timeout')),
-            checks.simulation_warning(interface, channel, simulated),
+            checks.simulation_warning(interface, channel, simulated + drives),
             checks.pdo_configure_warning(value('pdo.configure'), [
                 node_id for node_id in pdo_nodes
                 if not value(device_file_parameter(node_id))])) if warning]

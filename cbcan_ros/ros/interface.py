@@ -230,13 +230,19 @@ class GatewayInterface:
 
     def _simulated_devices(self, parameters: NodeParameters) -> list:
         node_ids = parameters.node_ids('simulation.devices')
-        if not node_ids:
-            return []
+        bus = dict(interface=self.gateway.config.interface,
+                   channel=self.gateway.config.channel)
+        devices = []
         # Only for trying the gateway without hardware: a real bus never loads the simulator.
-        from ..simulation.canopen_device import SimulatedDevice
-        return [SimulatedDevice(node_id, parameters.simulation_eds(),
-                                self.gateway.config.interface, self.gateway.config.channel)
-                for node_id in node_ids]
+        if node_ids:
+            from ..simulation.canopen_device import SimulatedDevice
+            devices = [SimulatedDevice(node_id, parameters.simulation_eds(), **bus)
+                       for node_id in node_ids]
+        drive_ids = parameters.node_ids('simulation.drives')
+        if drive_ids:
+            from ..simulation.simulated_drives import simulated_drives
+            devices += simulated_drives(drive_ids, self._node.get_logger().warning, **bus)
+        return devices
 
     def activate(self) -> None:
         """Serve calls and publish (a managed node's activate transition)."""

@@ -316,13 +316,23 @@ def check_file(name: str, path: str) -> None:
                                  'the path of an existing file, or empty')
 
 
+def check_simulated(devices: List[int], drives: List[int]) -> None:
+    """Refuse a node id given to both a simulated device and a simulated drive."""
+    both = sorted(set(devices) & set(drives))
+    if both:
+        raise ConfigurationError('simulation.drives', drives,
+                                 f'holds node id {both[0]}, which simulation.devices '
+                                 f'{devices} holds too: two devices would answer as one',
+                                 'node ids that are not in simulation.devices')
+
+
 def simulation_warning(interface: str, channel: str, devices: List[int]) -> Optional[str]:
     """Return a warning when simulated devices join a bus that may be a real one."""
     if devices and interface not in ('virtual', 'udp_multicast') and \
             not channel.startswith('vcan'):
-        return (f'parameter simulation.devices: simulated devices {devices} answer as node '
-                f'ids on {interface} channel {channel!r}; on a real bus they collide with '
-                f'real devices: keep simulation.devices empty there')
+        return (f'parameters simulation.devices and simulation.drives: simulated devices '
+                f'{devices} answer as node ids on {interface} channel {channel!r}; on a real '
+                f'bus they collide with real devices: keep both empty there')
     return None
 
 

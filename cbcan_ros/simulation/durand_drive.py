@@ -2,17 +2,18 @@
 
 :class:`DurandDrive` is a :class:`DurandDevice` (NMT, SDO, heartbeat, EMCY, PDOs) with the drive
 objects of CiA 402. It follows the power state machine (``cia402_states``) on every write of
-the controlword, by SDO or by RPDO alike, within that write. One tick on the shared durand
-scheduler (every ``tick`` seconds) moves the simulated axis in the mode of operation:
-profile position (set-point handshake), profile velocity, homing, and the cyclic synchronous
-position, velocity and torque modes. A consumer heartbeat (0x1016) watches the master: its
-loss while the drive is enabled brings the reaction of 0x6007.
+the controlword: by SDO within that write, by RPDO once every object of the frame is written.
+One tick on the shared durand scheduler (every ``tick`` seconds) moves the simulated axis in
+the mode of operation: profile position (set-point handshake), profile velocity, homing, and
+the cyclic synchronous position, velocity and torque modes. A consumer heartbeat (0x1016)
+watches the master: its loss while the drive is enabled brings the reaction of 0x6007.
 
 Units are whatever the master makes of them: positions in counts, velocities in counts/s,
 accelerations in counts/s², torque in thousandths of rated torque.
 """
 
 import enum
+import functools
 import logging
 import math
 import time
@@ -97,6 +98,8 @@ class DurandDrive(DurandDevice):
         self.tick = tick
         self._drive_state = State.NOT_READY_TO_SWITCH_ON
         self._controlword = 0
+        self._in_rpdo = False
+        self._rpdo_controlword: Optional[int] = None  # written by the RPDO being taken
         self._position = 0.0
         self._velocity = 0.0
         self._torque = 0
@@ -108,7 +111,6 @@ class DurandDrive(DurandDevice):
         self._set_point_acknowledged = False
         self._homing: Optional[Homing] = None
         self._master = HeartbeatConsumer(self._on_heartbeat_lost)
-        self._pdo_controlword: Optional[list] = None  # set while an RPDO is being written
 
     @property
     def drive_state(self) -> str:
@@ -160,47 +162,43 @@ class DurandDrive(DurandDevice):
     def _build_dictionary(self, od) -> None:
         super()._build_dictionary(od)
         add_drive_objects(od, self.modes)
-        self._on_write(od, CONTROLWORD, 0, self._on_controlword_written)
-        for rpdo in self.node.rpdo:
-            rpdo._write_data = self._whole_frame(rpdo._write_data)
+        self._on_write(od, CONTROLWORD, 0, self._on_controlword)
         self._on_write(od, MODE, 0, self._on_mode)
         for index in (TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE):
             # "Target reached" compares with them: a new one shows at once.
             self._on_write(od, index, 0, lambda value: self._publish())
         self._on_write(od, CONSUMER_HEARTBEAT, 1,
                        lambda entry: self._master.configure(self._network, entry))
+        for rpdo in self.node.rpdo:
+            # durand writes an RPDO's objects one by one, in mapping order, both as it arrives
+            # and at a SYNC (durand 0.5.0 calls _write_data for either). A drive takes the
+            # frame whole: a new set-point in the controlword takes the target position of
+            # the same frame, mapped after it.
+            rpdo._write_data = functools.partial(self._take_rpdo, rpdo._write_data)
 
     def _on_write(self, od, index: int, subindex: int, callback: Callable[[int], None]) -> None:
-        # durand's update callbacks swallow exceptions: a failing one would go unseen.
+        od.update_callbacks[(index, subindex)].add(self._logged(index, subindex, callback))
+
+    def _logged(self, index: int, subindex: int,
+                callback: Callable[[int], None]) -> Callable[[int], None]:
+        # durand swallows exceptions of update callbacks and of RPDO writes: a failing one
+        # would go unseen.
         def logged(value: int) -> None:
             try:
                 callback(value)
             except Exception:
                 LOGGER.exception('simulated drive %d failed on 0x%04X:%d = %r',
                                  self.node_id, index, subindex, value)
-        od.update_callbacks[(index, subindex)].add(logged)
+        return logged
 
-    def _whole_frame(self, write_data: Callable[[bytes], None]) -> Callable[[bytes], None]:
-        """Wrap durand's RPDO write so that the controlword acts after the whole frame.
-
-        durand writes a frame's objects one by one; a drive takes the frame whole, so a
-        controlword's new set-point takes the target position that came in the same frame.
-        """
-        def write(frame: bytes) -> None:
-            self._pdo_controlword = []
-            try:
-                write_data(frame)
-            finally:
-                written, self._pdo_controlword = self._pdo_controlword, None
-                for controlword in written:
-                    self._on_controlword(controlword)
-        return write
-
-    def _on_controlword_written(self, controlword: int) -> None:
-        if self._pdo_controlword is not None:
-            self._pdo_controlword.append(controlword)
-        else:
-            self._on_controlword(controlword)
+    def _take_rpdo(self, write: Callable[[bytes], None], data: bytes) -> None:
+        self._in_rpdo, self._rpdo_controlword = True, None
+        try:
+            write(data)
+        finally:
+            self._in_rpdo = False
+        if self._rpdo_controlword is not None:
+            self._logged(CONTROLWORD, 0, self._on_controlword)(self._rpdo_controlword)
 
     def _boot(self, clear: range, durand_reset: Callable[[], None]) -> None:
         super()._boot(clear, durand_reset)
@@ -220,6 +218,9 @@ class DurandDrive(DurandDevice):
             self._publish()
 
     def _on_controlword(self, controlword: int) -> None:
+        if self._in_rpdo:
+            self._rpdo_controlword = controlword  # acted on once the whole frame is in
+            return
         previous, self._controlword = self._controlword, controlword
         state = self._drive_state
         if state is State.FAULT:

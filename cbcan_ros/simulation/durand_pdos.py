@@ -3,7 +3,8 @@
 durand 0.5.0's TPDOs have no event timer (0x1800+n sub 5): added here, transmitting an
 event-driven TPDO every event timer period while it is active. Its PDO parameters survive a
 reset; a device restores its stored ones: :class:`PdoConfig` lists those, applied at every
-boot.
+boot. Its TPDOs of transmission type 2..240 send on every SYNC once they have sent on the nth:
+mended here (:class:`_SyncHandler`), for every durand device of the process.
 """
 
 from dataclasses import dataclass
@@ -12,6 +13,7 @@ from typing import Dict, Optional, Sequence, Tuple
 import durand
 from durand.datatypes import DatatypeEnum as DT
 from durand.object_dictionary import Variable
+from durand.services.pdo import tpdo as durand_tpdo
 
 from .durand_scheduler import shared_scheduler
 
@@ -19,6 +21,29 @@ from .durand_scheduler import shared_scheduler
 PDOS = 4
 TPDO_COMMUNICATION = 0x1800
 EVENT_TIMER_SUB = 5
+
+
+class _SyncHandler(durand_tpdo.SyncHandler):
+    """durand's SYNC handling of a synchronous TPDO, sending every nth SYNC (type n), not after.
+
+    durand 0.5.0 counts SYNCs without ever starting the count again. Nor is a TPDO sent outside
+    OPERATIONAL, where durand's attempt fails (and is swallowed) for want of mapped values.
+    """
+
+    def _on_sync(self):
+        if self._tpdo._cache is None:
+            return  # not active: nothing to send
+        if not self._divider:
+            super()._on_sync()  # type 0: once after a change, as durand does
+            return
+        self._counter += 1
+        if self._counter >= self._divider:
+            self._counter = 0
+            self._tpdo.transmit()
+
+
+# durand makes a TPDO's handler by this module name whenever its transmission type is set.
+durand_tpdo.SyncHandler = _SyncHandler
 
 
 @dataclass(frozen=True)
