@@ -182,8 +182,8 @@ class NodeParameters:
         bus_options = checks.bus_options(self._strings('can.options'))
         expected, guarded = self.node_ids('nodes'), self.node_ids('node_guarding')
         simulated = self.node_ids('simulation.devices')
-        drives = self.node_ids('simulation.drives')
-        checks.check_simulated(simulated, drives)
+        simulated_drives = self.node_ids('simulation.drives')
+        checks.check_simulated(simulated, simulated_drives)
         pdo_nodes = self.node_ids('pdo.nodes')
         drives = drive_parameters.settings(
             value, self.node_ids('drives.nodes'), value('heartbeat.node_id'),
@@ -192,14 +192,15 @@ class NodeParameters:
         checks.check_sync(value('sync.period'), value('sync.counter_overflow'))
         checks.check_own_node_id(value('heartbeat.node_id'), {
             'nodes': expected, 'node_guarding': guarded, 'pdo.nodes': pdo_nodes,
-            'simulation.devices': simulated, 'drives.nodes': list(drives.node_ids)})
+            'simulation.devices': simulated, 'simulation.drives': simulated_drives,
+            'drives.nodes': list(drives.node_ids)})
         checks.check_file('simulation.eds', value('simulation.eds'))
         self.check_device_files()  # the core does not use them; a bad one stops the node here
         self.warnings = [warning for warning in (
             checks.check_bitrate(interface, value('can.bitrate')),
             checks.check_guarding(guarded, expected, value('node_guarding_period'),
                                   value('heartbeat.timeout')),
-            checks.simulation_warning(interface, channel, simulated + drives),
+            checks.simulation_warning(interface, channel, simulated + simulated_drives),
             checks.pdo_configure_warning(value('pdo.configure'), [
                 node_id for node_id in pdo_nodes
                 if not value(device_file_parameter(node_id))])) if warning]
