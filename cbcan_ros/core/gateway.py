@@ -215,15 +215,18 @@ class Gateway:
     def stop(self) -> None:
         """Answer every waiting call, abort running transfers, then close the bus.
 
-        From the first moment of shutdown no request frame is sent: the only frames that
-        may still go out are the aborts of transfers that were running.
+        From the first moment of shutdown no caller's request is sent. What may still go out:
+        the drives' stop commands (``drives.on_shutdown``, first, with the heartbeat still
+        beating), then only the aborts of transfers that were running.
         """
         with self._lock:
             if self._closing:
                 return
             self._closing = True
             self._stopping_drives = True
-        # The drives' stop commands go first, while the bus is open; callers' requests are
+        # The PDO service first: its mapping reads, refused from here on, are no failures.
+        self.pdo.stop()
+        # The drives' stop commands go next, while the bus is open; callers' requests are
         # refused from here on, the drive service's are taken until its stops are sent.
         self.drives.stop()
         with self._lock:
@@ -232,7 +235,6 @@ class Gateway:
         # The drives were told to stop before their heartbeat consumers see the gateway fall
         # silent; then no heartbeat frame after the first moment of shutdown.
         self.heartbeat.stop()
-        self.pdo.stop()
         self.sync.stop()
         self.bus.restrict_sending(_closes_a_running_operation, SHUTTING_DOWN)
         self._guarding.stop()

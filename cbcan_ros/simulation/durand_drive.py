@@ -40,6 +40,7 @@ from .durand_drive_objects import (
     QUICK_STOP,
     QUICK_STOP_DECELERATION,
     QUICK_STOP_OPTION,
+    SIMULATED_FAULT,
     STATUSWORD,
     TARGET_POSITION,
     TARGET_TORQUE,
@@ -164,6 +165,7 @@ class DurandDrive(DurandDevice):
         add_drive_objects(od, self.modes)
         self._on_write(od, CONTROLWORD, 0, self._on_controlword)
         self._on_write(od, MODE, 0, self._on_mode)
+        self._on_write(od, SIMULATED_FAULT, 0, self._on_simulated_fault)
         for index in (TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE):
             # "Target reached" compares with them: a new one shows at once.
             self._on_write(od, index, 0, lambda value: self._publish())
@@ -293,6 +295,11 @@ class DurandDrive(DurandDevice):
         self._position = float(self._read(HOME_OFFSET))
         self._pp_goal = self._position
         self._homing = Homing.ATTAINED
+
+    def _on_simulated_fault(self, error_code: int) -> None:
+        if error_code and self._drive_state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            self._fault(error_code)
+            self._publish()
 
     def _fault(self, error_code: int) -> None:
         self._enter(State.FAULT_REACTION_ACTIVE)

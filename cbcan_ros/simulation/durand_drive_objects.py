@@ -33,6 +33,9 @@ QUICK_STOP_DECELERATION = 0x6085
 HOMING_METHOD = 0x6098
 TARGET_VELOCITY = 0x60FF
 SUPPORTED_MODES = 0x6502
+# Not of CiA 402: writing an error code here makes the simulated drive fault with it, as a
+# real drive does on an over-current, so a fault can be tried from outside its process.
+SIMULATED_FAULT = 0x2FFF
 
 ABORT_VALUE_RANGE = 0x06090030
 
@@ -80,6 +83,7 @@ def add_drive_objects(od: ObjectDictionary, modes: Iterable[int]) -> None:
                                name='Manufacturer device name')
     for index, datatype, access, default, name in OBJECTS:
         od[index] = Variable(datatype, access, default, name=name)
+    od[SIMULATED_FAULT] = Variable(DT.UNSIGNED16, 'rw', 0, name='Simulated fault')
     od[SUPPORTED_MODES] = Variable(DT.UNSIGNED32, 'ro', cia402.supported_modes_bits(modes),
                                    name='Supported drive modes')
     od[CONSUMER_HEARTBEAT] = Array(Variable(DT.UNSIGNED32, 'rw', 0,
