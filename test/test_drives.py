@@ -181,3 +181,99 @@ def test_read_only_refuses_every_command(rig):
     response = axis.command('enable', CSV)
     assert not response.success and response.abort_code == LOCAL_CONTROL
     assert axis.drive.drive_state == 'SWITCH_ON_DISABLED'
+
+
+def test_halt_stops_the_axis_and_resume_lets_targets_through_again(rig):
+    axis = rig()
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=1.0))
+    wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    halted = axis.command('halt')
+    assert halted.success, halted.message
+    assert axis.drive.velocity == 0
+    refused = axis.gateway.node.gateway.drives.target(NODE, 500.0)
+    assert not refused.success and 'resume' in refused.message
+    assert axis.command('resume').success
+    axis.target.publish(Float64(data=0.5))
+    wait_until(lambda: axis.drive.velocity == 500, WAIT, 'the drive at 500 counts/s')
+
+
+def test_a_streaming_drive_without_targets_is_halted_and_the_next_target_resumes_it(rig):
+    axis = rig(**{'drives.command_timeout': 0.3})
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=1.0))
+    wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    wait_until(lambda: axis.states[-1].halted, WAIT, 'drive_state halted')
+    wait_until(lambda: axis.drive.velocity == 0, WAIT, 'the halted drive standing')
+    assert axis.drive.statusword & 0x100  # the drive shows the halt itself
+    axis.target.publish(Float64(data=0.7))
+    wait_until(lambda: axis.drive.velocity == 700, WAIT, 'the drive moving again')
+
+
+def test_position_targets_in_pp_are_new_set_points_applied_at_once(rig):
+    axis = rig()
+    axis.enable(PP)
+    for goal in (0.5, 1.0, 0.25):
+        axis.target.publish(Float64(data=goal))
+    wait_until(lambda: axis.drive.position == 250 and axis.states[-1].target_reached, WAIT,
+               'the drive at the last set-point')
+
+
+def test_homing_answers_when_the_drive_shows_homing_attained(rig):
+    axis = rig()
+    axis.enable(CSV)
+    homed = axis.command('home')
+    assert homed.success, homed.message
+    assert (homed.mode, homed.statusword & 0x1400) == (HOMING, 0x1400)
+
+
+def test_set_mode_holds_the_axis_and_answers_in_the_new_mode(rig):
+    axis = rig()
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=1.0))
+    wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    changed = axis.command('set_mode', CST)
+    assert changed.success and changed.mode == CST, changed.message
+    wait_until(lambda: axis.drive.velocity == 0, WAIT, 'zero torque: the axis at rest')
+
+
+def test_cancelling_a_move_halts_the_drive_and_answers_where_it_stopped(rig):
+    axis = rig()
+    axis.enable(PP)
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    feedback = []
+    goal = wait_for_future(axis.mover.send_goal_async(
+        DriveMove.Goal(node_id=NODE, position=500.0, velocity=2.0),
+        feedback_callback=feedback.append), WAIT)
+    wait_until(lambda: feedback, WAIT, 'move feedback')
+    wait_for_future(goal.cancel_goal_async(), WAIT)
+    result = wait_for_future(goal.get_result_async(), WAIT).result
+    assert not result.success and 'cancelled' in result.message
+    assert axis.drive.velocity == 0
+    assert 0 < result.position < 500.0
+    assert math.isclose(result.position, axis.drive.position / SCALE)
+
+
+def test_a_new_move_replaces_the_one_running(rig):
+    axis = rig()
+    axis.enable(PP)
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    first = wait_for_future(axis.mover.send_goal_async(
+        DriveMove.Goal(node_id=NODE, position=500.0, velocity=2.0)), WAIT)
+    second = wait_for_future(axis.mover.send_goal_async(
+        DriveMove.Goal(node_id=NODE, position=-0.5, velocity=50.0)), WAIT)
+    replaced = wait_for_future(first.get_result_async(), WAIT).result
+    done = wait_for_future(second.get_result_async(), WAIT).result
+    assert not replaced.success and 'replaced' in replaced.message
+    assert done.success, done.message
+    assert axis.drive.position == -500  # below zero: decoded as the signed object it is
+
+
+def test_nan_and_out_of_range_targets_are_refused_and_nothing_moves(rig):
+    axis = rig()
+    axis.enable(CSV)
+    drives = axis.gateway.node.gateway.drives
+    for value in (float('nan'), float('inf'), 2.0 ** 40):
+        refused = drives.target(NODE, value)
+        assert not refused.success and 'nothing was sent' in refused.message
+    assert axis.drive.velocity == 0

@@ -42,7 +42,7 @@ from .drive_checks import (
 from .drive_commands import DriveCommands
 from .drive_cycle import FeedbackCycle
 from .drive_objects import decode, DriveObjects, FEEDBACK
-from .drive_safety import command_timed_out, stop_motion, watch_the_gateway
+from .drive_safety import command_timed_out, SHUTDOWN_WAIT, stop_motion, watch_the_gateway
 from .drive_status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed
 from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED, OPERATIONAL
 from .pdo_mapping import ReceivedPdo
@@ -60,14 +60,10 @@ DEFAULT_TIMEOUT = 2.0
 HOMING_TIMEOUT = 60.0
 # A drive's initial read that failed is tried again on a later heartbeat, at most this often.
 REREAD_INTERVAL = 1.0
-
-# What is read of a drive when it is first heard and after each boot: its feedback, its
-# modes, and the commanded values a PDO frame repeats.
-INITIAL_READS = (*FEEDBACK, cia402.ERROR_CODE, cia402.SUPPORTED_MODES, cia402.CONTROLWORD,
-                 cia402.MODE, cia402.TARGET_POSITION, cia402.TARGET_VELOCITY,
-                 cia402.TARGET_TORQUE, cia402.PROFILE_VELOCITY_OBJECT)
-COMMANDED_READS = (cia402.CONTROLWORD, cia402.MODE, cia402.TARGET_POSITION,
-                   cia402.TARGET_VELOCITY, cia402.TARGET_TORQUE, cia402.PROFILE_VELOCITY_OBJECT)
+# What no TPDO brings is read by SDO this often (and at once after each controlword sent):
+# every feedback cycle would be 250 SDO transfers a second per drive, most of a 500 kbit/s bus
+# for a few drives.
+POLL_PERIOD = 0.1
 
 
 class DriveService:
@@ -152,9 +148,18 @@ class DriveService:
             self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
 
     def pause(self, reason: str) -> None:
-        """Stop every powered drive as at shutdown, and end what runs (a node deactivated)."""
-        for drive in self._drives.values():
-            self._runner.call_soon(lambda d=drive: self._commands.cancel(d, reason))
+        """End what runs, then stop every powered drive as at shutdown (a node deactivated).
+
+        The sequences are ended first, and waited for: one still running could send an
+        enable step after the stop.
+        """
+        ended = self._runner.submit(self._commands.cancel_all(reason))
+        if ended is not None:
+            try:
+                ended.result(SHUTDOWN_WAIT)
+            except TimeoutError:
+                LOGGER.error('drive commands did not end within %.1f s of: %s', SHUTDOWN_WAIT,
+                             reason)
         stop_motion(self._drives.values(), self.settings, self._lock, reason)
 
     def command(self, node_id: int, command: str, mode: int = 0,
@@ -251,7 +256,7 @@ class DriveService:
 
     def request_feedback(self, drive: DriveRecord) -> None:
         """Read by SDO at once what no TPDO brings (after an SDO controlword, say)."""
-        self._poll(drive)
+        self._poll(drive, now=True)
 
     def set_halted(self, drive: DriveRecord, by: str) -> None:
         """Record who halted the drive ('' = nobody), and show it."""
@@ -272,21 +277,6 @@ class DriveService:
     def take(self, drive: DriveRecord, values: Dict[int, int]) -> None:
         """Take values read by SDO as the drive's feedback."""
         self._apply(drive, values, time.monotonic())
-
-    def controlword(self, drive: DriveRecord) -> int:
-        """Return the controlword last commanded to ``drive``."""
-        with self._lock:
-            return drive.controlword
-
-    def updates(self, drive: DriveRecord) -> int:
-        """Return how many statuswords of ``drive`` were taken so far."""
-        with self._lock:
-            return drive.updates
-
-    def heard(self, drive: DriveRecord) -> bool:
-        """Return whether ``drive`` is heartbeating now."""
-        with self._lock:
-            return drive.heard
 
     # Frames and node states, from the bus thread.
 
@@ -357,6 +347,8 @@ class DriveService:
                           torque=values.get(cia402.TORQUE_ACTUAL, old.torque),
                           error_code=values.get(cia402.ERROR_CODE, old.error_code),
                           received=stamp)
+            if old.state == cia402.OPERATION_ENABLED and new.state != old.state:
+                new = replace(new, needs_enable=True)  # left it by itself: enable it afresh
             if new.faulted and not old.faulted:
                 # The EMCY the drive sent with its fault names the error until 0x603F is read.
                 new = replace(new, needs_enable=True, error_code=values.get(
@@ -397,35 +389,28 @@ class DriveService:
     # The drives' loop: reads when heard, the error code of a fault.
 
     async def _initial_read(self, drive: DriveRecord, request: int) -> None:
-        values = await asyncio.wrap_future(
-            drive.objects.read(INITIAL_READS, DEFAULT_TIMEOUT))
+        values = await asyncio.wrap_future(drive.objects.read_initial(DEFAULT_TIMEOUT))
         with self._lock:
             if request != drive.read_wanted:
                 return  # it booted again meanwhile: a newer read follows
-            if cia402.STATUSWORD not in values:
-                drive.read_done = -request
-                drive.read_failed_at = time.monotonic()
-            else:
-                drive.read_done = request
-                drive.controlword = values.get(cia402.CONTROLWORD, 0)
-                drive.status = replace(drive.status, supported_modes=values.get(
-                    cia402.SUPPORTED_MODES, 0))
-        if cia402.STATUSWORD not in values:
+            read = cia402.STATUSWORD in values
+            drive.read_done = request if read else -request
+            drive.read_failed_at = time.monotonic()
+            drive.controlword = values.get(cia402.CONTROLWORD, 0)
+            drive.status = replace(drive.status, supported_modes=values.get(
+                cia402.SUPPORTED_MODES, 0))
+        if not read:
             LOGGER.warning('drive %d: its statusword could not be read; tried again on a '
                            'later heartbeat', drive.node_id)
             return
-        drive.objects.know({index: values[index] for index in COMMANDED_READS
-                            if index in values})
-        self._apply(drive, {index: values[index] for index in (*FEEDBACK, cia402.ERROR_CODE)
-                            if index in values}, time.monotonic())
+        self.take(drive, {index: values[index] for index in (*FEEDBACK, cia402.ERROR_CODE)
+                          if index in values})
         await watch_the_gateway(self._sdo_batch, drive.node_id, self.settings)
 
     async def _read_error(self, drive: DriveRecord) -> None:
         values = await asyncio.wrap_future(drive.objects.read([cia402.ERROR_CODE],
                                                               DEFAULT_TIMEOUT))
-        if cia402.ERROR_CODE in values:
-            self._apply(drive, {cia402.ERROR_CODE: values[cia402.ERROR_CODE]},
-                        time.monotonic())
+        self.take(drive, values)
         status = self.status(drive.node_id)
         LOGGER.error('drive %d FAULT: error code 0x%04X (%s); targets are refused until '
                      'fault_reset and enable', drive.node_id, status.error_code, status.error)
@@ -440,10 +425,14 @@ class DriveService:
                 self._notify(self.status(drive.node_id))
                 drive.objects.write({cia402.CONTROLWORD: word}, DEFAULT_TIMEOUT)
 
-    def _poll(self, drive: DriveRecord) -> None:
+    def _poll(self, drive: DriveRecord, now: bool = False) -> None:
+        """Read by SDO what no TPDO brings: every ``POLL_PERIOD``, or ``now``."""
         with self._lock:
             if drive.polling or not drive.heard or drive.read_done <= 0 or self._closing:
                 return
+            if not now and time.monotonic() - drive.polled < POLL_PERIOD:
+                return
+            drive.polled = time.monotonic()
             missing = [index for index in FEEDBACK
                        if index not in drive.objects.mapped_feedback()]
             if not missing:

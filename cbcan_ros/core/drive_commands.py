@@ -30,7 +30,11 @@ class DriveFailed(Exception):
 
 
 class DriveCommands:
-    """The sequences of :class:`~.drive.DriveService` ``service``, one at a time per drive."""
+    """The sequences of :class:`~.drive.DriveService` ``service``, one at a time per drive.
+
+    They read single fields of a drive's record (its controlword, statuswords taken, whether
+    it is heard) without the service's lock: each is one reference, read whole.
+    """
 
     def __init__(self, service):
         self._service = service
@@ -69,6 +73,14 @@ class DriveCommands:
         if halt:
             self._halt_when_cancelled.add(task)
         task.cancel()
+
+    async def cancel_all(self, reason: str) -> None:
+        """End every sequence running, answered ``reason``, and wait until they have ended."""
+        tasks = [task for task in self._tasks.values() if not task.done()]
+        for task in tasks:
+            self._reasons[task] = reason
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
 
     async def _own(self, drive, sequence: Callable, timeout: Optional[float]):
         task = asyncio.current_task()
@@ -111,7 +123,7 @@ class DriveCommands:
             woken = loop.create_future()
             self._service.when_updated(drive, lambda f=woken: f.done() or f.set_result(None))
             status = self._service.status(drive.node_id)
-            if not self._service.heard(drive):
+            if not drive.heard:
                 raise DriveFailed(f'node {drive.node_id} stopped heartbeating: state UNKNOWN')
             if status.faulted and not fault_ok:
                 raise DriveFailed(f'node {drive.node_id} went to {status.state}: error '
@@ -123,7 +135,7 @@ class DriveCommands:
 
     async def _send(self, drive, values: Dict[int, int]) -> int:
         """Send ``values``; return the statuswords taken before (what a reply must exceed)."""
-        mark = self._service.updates(drive)
+        mark = drive.updates
         try:
             sent = self._service.send(drive, values, SEND_TIMEOUT)
         except ValueError as error:
@@ -137,7 +149,7 @@ class DriveCommands:
 
     async def _after(self, drive, mark: int, ok: Callable, fault_ok: bool = False):
         """Return the first status newer than ``mark`` for which ``ok(status)``."""
-        return await self._until(drive, lambda status: self._service.updates(drive) > mark
+        return await self._until(drive, lambda status: drive.updates > mark
                                  and ok(status), fault_ok)
 
     async def _reach(self, drive, wanted: str, done: Callable, fault_ok: bool = False):
@@ -209,7 +221,7 @@ class DriveCommands:
 
     async def _halt(self, drive, _mode: int) -> str:
         self._service.set_halted(drive, 'command')
-        word = self._service.controlword(drive) | cia402.HALT
+        word = drive.controlword | cia402.HALT
         mark = await self._send(drive, {cia402.CONTROLWORD: word})
         await self._after(drive, mark, _standing)
         await self._read_position(drive)
@@ -219,7 +231,7 @@ class DriveCommands:
     async def _resume(self, drive, _mode: int) -> str:
         self._service.set_halted(drive, '')
         self._service.set_enabled(drive, True)  # restarts the command timeout
-        word = self._service.controlword(drive) & ~cia402.HALT
+        word = drive.controlword & ~cia402.HALT
         mark = await self._send(drive, {cia402.CONTROLWORD: word})
         await self._after(drive, mark, lambda status: True)
         return f'node {drive.node_id} resumed'
@@ -230,7 +242,7 @@ class DriveCommands:
             return f'node {drive.node_id} is {status.state}: no fault to reset'
         await self._until(drive, lambda s: s.state != cia402.FAULT_REACTION_ACTIVE,
                           fault_ok=True)
-        if self._service.controlword(drive) & cia402.FAULT_RESET:
+        if drive.controlword & cia402.FAULT_RESET:
             await self._send(drive, {cia402.CONTROLWORD: cia402.DISABLE_VOLTAGE})
         await self._send(drive, {cia402.CONTROLWORD: cia402.FAULT_RESET})
         status = await self._until(drive, lambda s: not s.faulted, fault_ok=True)
@@ -247,9 +259,9 @@ class DriveCommands:
 
     async def _home(self, drive, _mode: int) -> str:
         await self._change_mode(drive, cia402.HOMING)
-        word = self._service.controlword(drive) & ~(cia402.MODE_BITS | cia402.HALT)
+        word = drive.controlword & ~(cia402.MODE_BITS | cia402.HALT)
         self._service.set_halted(drive, '')
-        if self._service.controlword(drive) & cia402.NEW_SET_POINT:
+        if drive.controlword & cia402.NEW_SET_POINT:
             await self._send(drive, {cia402.CONTROLWORD: word})
         mark = await self._send(drive, {cia402.CONTROLWORD: word | cia402.NEW_SET_POINT})
         status = await self._after(drive, mark, lambda s: bool(
@@ -271,7 +283,7 @@ class DriveCommands:
         mark = await self._new_set_point(drive, position, relative)
         while True:
             status = await self._after(drive, mark, lambda s: True)
-            mark = self._service.updates(drive)
+            mark = drive.updates
             if on_feedback is not None:
                 on_feedback(status)
             if status.target_reached:
@@ -301,9 +313,9 @@ class DriveCommands:
         The mark is taken when the drive acknowledged: target reached counts from there.
         """
         self._service.set_halted(drive, '')
-        word = self._service.controlword(drive) & ~(cia402.MODE_BITS | cia402.HALT)
+        word = drive.controlword & ~(cia402.MODE_BITS | cia402.HALT)
         status = self._service.status(drive.node_id)
-        if (self._service.controlword(drive) & cia402.NEW_SET_POINT
+        if (drive.controlword & cia402.NEW_SET_POINT
                 or status.statusword & cia402.MODE_BIT_12):
             mark = await self._send(drive, {cia402.CONTROLWORD: word})
             await self._after(drive, mark, lambda s: not s.statusword & cia402.MODE_BIT_12)
@@ -313,7 +325,7 @@ class DriveCommands:
         mark = await self._send(drive, {cia402.TARGET_POSITION: position,
                                         cia402.CONTROLWORD: word | bits})
         await self._after(drive, mark, lambda s: bool(s.statusword & cia402.MODE_BIT_12))
-        acknowledged = self._service.updates(drive) - 1
+        acknowledged = drive.updates - 1
         await self._send(drive, {cia402.CONTROLWORD: word})
         return acknowledged
 
@@ -322,7 +334,7 @@ class DriveCommands:
         self._service.set_halted(drive, 'cancel')
         try:
             mark = await self._send(drive, {
-                cia402.CONTROLWORD: self._service.controlword(drive) | cia402.HALT})
+                cia402.CONTROLWORD: drive.controlword | cia402.HALT})
             await asyncio.wait_for(self._after(drive, mark, _standing), HALT_WAIT)
         except (DriveFailed, TimeoutError) as error:
             return f'{reason}; the halt was not confirmed: {error or "no standstill"}'

@@ -32,6 +32,9 @@ FEEDBACK = (cia402.STATUSWORD, cia402.MODE_DISPLAY, cia402.POSITION_ACTUAL,
 COMMANDED = frozenset({cia402.CONTROLWORD, cia402.MODE, cia402.TARGET_POSITION,
                        cia402.TARGET_VELOCITY, cia402.TARGET_TORQUE,
                        cia402.PROFILE_VELOCITY_OBJECT})
+# What is read of a drive when it is first heard and after each boot: its feedback, its
+# error and modes, and the commanded values a PDO frame repeats.
+INITIAL_READS = (*FEEDBACK, cia402.ERROR_CODE, cia402.SUPPORTED_MODES, *sorted(COMMANDED))
 
 
 def encode(index: int, value: int) -> bytes:
@@ -135,6 +138,13 @@ class DriveObjects:
         with self._lock:
             self.commanded.update(values)
         return self._write_by_sdo(data, timeout)
+
+    def read_initial(self, timeout: float) -> 'Future[Dict[int, int]]':
+        """Read what the gateway needs of a drive it now hears; keep its commanded values."""
+        values = self.read(INITIAL_READS, timeout)
+        values.add_done_callback(lambda read: self.know({
+            index: value for index, value in read.result().items() if index in COMMANDED}))
+        return values
 
     def read(self, indexes: Iterable[int], timeout: float) -> 'Future[Dict[int, int]]':
         """Read ``indexes`` by SDO; resolves to the values read (failed ones left out)."""

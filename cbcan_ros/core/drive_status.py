@@ -82,6 +82,7 @@ class DriveRecord:
     halted_by: str = ''  # '', 'command' or 'timeout'
     last_target: float = 0.0
     polling: bool = False
+    polled: float = 0.0  # time.monotonic() of the last SDO read of its feedback
     timeouts: int = 0
     emcy_code: int = 0  # the error code of the last EMCY
     waiters: List[Callable[[], None]] = field(default_factory=list)

@@ -163,8 +163,9 @@ class DriveTopics:
             error=status.error, target_reached=status.target_reached, halted=status.halted)
 
     def _publish_joint_states(self) -> None:
-        if self._joint_states is None or self._refusal() is not None:
-            return
+        if (self._joint_states is None or self._refusal() is not None
+                or not self._joint_states.get_subscription_count()):
+            return  # volatile: a message nobody receives is not worth building
         statuses = self._service.statuses()
         newest = max(status.received for status in statuses)
         message = JointState()
