@@ -52,17 +52,14 @@ from .sdo import check_node_id
 LOGGER = logging.getLogger(__name__)
 
 SHUTTING_DOWN = 'the gateway is shutting down'
-
-
 # How long a command may take unless its caller says: every drive takes each transition in
 # milliseconds; homing runs for as long as the axis travels.
 DEFAULT_TIMEOUT = 2.0
 HOMING_TIMEOUT = 60.0
 # A drive's initial read that failed is tried again on a later heartbeat, at most this often.
 REREAD_INTERVAL = 1.0
-# What no TPDO brings is read by SDO this often (and at once after each controlword sent):
-# every feedback cycle would be 250 SDO transfers a second per drive, most of a 500 kbit/s bus
-# for a few drives.
+# What no TPDO brings is read by SDO this often, and at once after each controlword: every
+# feedback cycle would be 250 transfers a second a drive, most of a 500 kbit/s bus for a few.
 POLL_PERIOD = 0.1
 
 
@@ -71,16 +68,19 @@ class DriveService:
 
     ``network`` is the gateway's canopen network, ``monitor`` its heartbeat monitor, ``pdo``
     its PDO service, ``sdo_batch`` its SDO batch call, ``sync_producing()`` whether it
-    produces SYNC, ``write_protection`` its write rules.
+    produces SYNC, ``write_protection`` its write rules, ``bus_down()`` why the bus is down
+    (None while it is up).
     """
 
     def __init__(self, network, settings: DriveSettings, monitor, pdo, sdo_batch,
-                 sync_producing: Callable[[], bool], write_protection):
+                 sync_producing: Callable[[], bool], write_protection,
+                 bus_down: Callable[[], Optional[str]] = lambda: None):
         self.settings = settings
         self._network = network
         self._monitor = monitor
         self._sdo_batch = sdo_batch
         self._protection = write_protection
+        self._bus_down = bus_down
         self._lock = threading.RLock()
         self._drives = {
             node_id: DriveRecord(node_id, DriveObjects(
@@ -476,7 +476,8 @@ class DriveService:
         refusal = self._protection.refuses_write(node_id, cia402.CONTROLWORD)
         if refusal:
             return failed(status, f'{refusal}; {NOTHING_SENT}', abort_codes.LOCAL_CONTROL)
-        problem = SHUTTING_DOWN if closing else state_problem(status, heard, enabled)
+        problem = (SHUTTING_DOWN if closing else self._bus_down()
+                   or state_problem(status, heard, enabled))
         return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
 
     def _refused(self, node_id: int, message: str) -> DriveResult:

@@ -167,7 +167,7 @@ class Gateway:
                                    lambda accesses, timeout: self._batch(accesses, timeout,
                                                                          True),
                                    lambda: self.sync.producing,
-                                   config.write_protection)
+                                   config.write_protection, self._bus_down)
         self.emcy.add_listener(lambda emergency: self.drives.on_emcy(
             emergency.node_id, emergency.error_code))
         self._deadlines = Deadlines()
@@ -331,6 +331,10 @@ class Gateway:
             return refusal
         if self._closing:
             return SHUTTING_DOWN
+        return None if status.up else f'the CAN bus is down: {status.reason}'
+
+    def _bus_down(self) -> Optional[str]:
+        status = self.bus.status
         return None if status.up else f'the CAN bus is down: {status.reason}'
 
     def _open_bus(self) -> can.BusABC:
