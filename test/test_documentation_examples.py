@@ -15,9 +15,10 @@ Each fenced block of every page is one of:
 - listed in ``NOT_RUN`` with the reason it cannot run here (the PDO worked example for a
   drive also runs with the objects of ``make run``'s node 5 in the drive's place).
 A block that is none of these fails the test, so a new block is run or listed. Every Python
-block, run or not, is complete as printed: ruff finds no undefined name in it. Every relative
-link of the pages leads to a file that exists (and to a heading of it, when it names one), and
-the README links every page of docs/.
+block, run or not, is complete as printed: ruff finds no undefined name in it. Every
+``cbcan_cli`` command of a shell block, run or not, is a command line ``cbcan_cli`` takes (or
+the page shows argparse's answer to it). Every relative link of the pages leads to a file that
+exists (and to a heading of it, when it names one), and the README links every page of docs/.
 """
 
 from dataclasses import dataclass
@@ -92,6 +93,9 @@ NOT_RUN = {
     'def on_drive(message):': 'a CiA 402 drive as node 5: '
                               'test_pdo_worked_example_runs_with_the_simulated_objects runs it '
                               "with the objects of make run's node 5 in the drive's place",
+    'cbcan_cli drive 7 enable --mode pp': 'a CiA 402 drive, which the simulation of make run '
+                                          'has not: test_drive_cli runs these commands '
+                                          'against a simulated drive',
     'LssScan request:': 'a summary of srv_defs/srv/LssScan.srv, LssConfigure.srv and '
                         'LssInquire.srv',
     'joint_state_topic_hardware_interface/JointStateTopicSystem': 'a ros2_control robot '
@@ -257,6 +261,22 @@ def test_python_blocks_are_complete_as_printed(block):
                               '--stdin-filename', 'example.py', '-'], input=block.text,
                              capture_output=True, text=True)
     assert checked.returncode == 0, f'{block}\n{checked.stdout}{checked.stderr}'
+
+
+@pytest.mark.parametrize('block', [block for block in all_blocks()
+                                   if block.language == 'bash'], ids=lambda block: block.name)
+def test_cli_commands_are_valid_command_lines_as_printed(block, capsys):
+    """Run or not, every cbcan_cli command of a shell block is one cbcan_cli takes."""
+    for command, shown in session(block):
+        arguments = cli_arguments(command)
+        if arguments is None:
+            continue
+        try:
+            build_parser().parse_args(arguments)
+        except SystemExit:
+            # A wrong command line the page shows as such, with argparse's own answer.
+            usage = capsys.readouterr().err.splitlines()
+            assert usage and usage == shown, f'{block}: {command}\n{usage}'
 
 
 def make_run_arguments() -> List[str]:

@@ -205,6 +205,7 @@ class DriveCommands:
 
     async def _disable(self, drive, _mode: int) -> str:
         self._service.set_enabled(drive, False)
+        self._service.set_halted(drive, '')
         status = await self._reach(drive, cia402.SWITCH_ON_DISABLED,
                                    lambda s: s.state == cia402.SWITCH_ON_DISABLED or s.faulted,
                                    fault_ok=True)
@@ -212,6 +213,7 @@ class DriveCommands:
 
     async def _quick_stop(self, drive, _mode: int) -> str:
         self._service.set_enabled(drive, False)
+        self._service.set_halted(drive, '')
         status = self._service.status(drive.node_id)
         if _stopped(status) or status.state not in cia402.POWERED:
             return f'node {drive.node_id} is {status.state}: nothing to stop'
@@ -226,7 +228,7 @@ class DriveCommands:
         await self._after(drive, mark, _standing)
         await self._read_position(drive)
         position = self._service.status(drive.node_id).position
-        return f'node {drive.node_id} halted at position {position}'
+        return f'node {drive.node_id} halted at position {position} (drive units)'
 
     async def _resume(self, drive, _mode: int) -> str:
         self._service.set_halted(drive, '')
@@ -271,7 +273,7 @@ class DriveCommands:
         if status.statusword & cia402.MODE_BIT_13:
             raise DriveFailed(f'node {drive.node_id}: homing failed (statusword bit 13, '
                               f'homing error; method in 0x6098)')
-        return f'node {drive.node_id} homed: position {status.position}'
+        return f'node {drive.node_id} homed: position {status.position} (drive units)'
 
     # Profile position: moves and streamed set-points share the set-point handshake.
 
@@ -290,7 +292,7 @@ class DriveCommands:
                 # The TPDO with the position may lag the statusword's: the answer reads it.
                 await self._read_position(drive)
                 position = self._service.status(drive.node_id).position
-                return f'node {drive.node_id} reached position {position}'
+                return f'node {drive.node_id} reached position {position} (drive units)'
 
     async def _read_position(self, drive) -> None:
         read = await asyncio.wrap_future(drive.objects.read([cia402.POSITION_ACTUAL],
@@ -339,7 +341,8 @@ class DriveCommands:
         except (DriveFailed, TimeoutError) as error:
             return f'{reason}; the halt was not confirmed: {error or "no standstill"}'
         await self._read_position(drive)
-        return f'{reason}: halted at position {self._service.status(drive.node_id).position}'
+        return (f'{reason}: halted at position '
+                f'{self._service.status(drive.node_id).position} (drive units)')
 
 
 def _standing(status) -> bool:

@@ -20,6 +20,11 @@ Examples (the gateway started by ``make run`` is ``/can0/cbcan``)::
     cbcan_cli lss-configure 0x319 0x51 0x10000 7 --node-id 12 --store
     cbcan_cli pdo-echo 5                                  # what node 5 sends (its TPDOs)
     cbcan_cli pdo-write 5 1 "Demo UNSIGNED8=7" 0x2001=300  # node 5's RPDO 1
+    cbcan_cli drive 7 enable --mode csv                   # a CiA 402 drive of drives.nodes
+    cbcan_cli target 7 1.5                                # its target in CSV, joint units/s
+    cbcan_cli drive 7 set-mode --mode pp
+    cbcan_cli move 7 2.0 --velocity 0.5                   # Ctrl-C cancels: the drive halts
+    cbcan_cli drives                                      # every drive's state
 
 Objects are given by index (a number) or by the name the node's EDS or DCF file gives them.
 The file is the gateway's parameter ``node_<id>.eds`` (asked of the running gateway) or
@@ -28,7 +33,7 @@ The file is the gateway's parameter ``node_<id>.eds`` (asked of the running gate
 Exit status: 0 on success, 1 when the gateway answered with an error (an SDO abort, a
 refused request) or the answer does not fit the value type, 2 when there is no usable
 gateway (not running, no answer) or the command line is wrong (an unknown name, a value that
-does not fit its type).
+does not fit its type); 130 when Ctrl-C ended it (a move is cancelled first).
 """
 
 import argparse
@@ -37,14 +42,14 @@ from typing import Optional, Sequence
 
 from ..client import DEFAULT_GATEWAY, DEFAULT_WAIT, RequestFailed
 from ..service_caller import GatewayUnavailable
-from . import lss, mailbox, nmt, pdo, sdo
+from . import drive, lss, mailbox, move, nmt, pdo, sdo
 from .arguments import positive_seconds
 from .errors import print_refusal, UsageError
 from .standalone_client import Client
 
 # The command groups, each a module with add_commands(commands), in the order --help lists
 # their commands.
-COMMAND_GROUPS = (sdo, nmt, mailbox, lss, pdo)
+COMMAND_GROUPS = (sdo, nmt, mailbox, lss, pdo, drive, move)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
         description='Call the services of a cbcan_ros CANopen gateway. Numbers take '
                     'decimal or 0x hex.',
         epilog='Exit status: 0 ok, 1 the gateway answered with an error, 2 no gateway or a '
-               'wrong command line.')
+               'wrong command line, 130 ended by Ctrl-C.')
     parser.add_argument('--gateway', default=DEFAULT_GATEWAY,
                         help='the gateway node: namespace and name (default %(default)s)')
     parser.add_argument('--wait', type=positive_seconds, default=DEFAULT_WAIT,

@@ -1,11 +1,18 @@
 """The gateway's client of one ``cbcan_cli`` run: its own ROS context and node."""
 
+import contextlib
+import time
+
 from rcl_interfaces.srv import GetParameters
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import parameter_value_to_python
 
 from ..client import GatewayClient
+
+# Seconds between looks at a condition while the CLI's node is spun (Ctrl-C is taken
+# between two spins).
+SPIN_PERIOD = 0.1
 
 
 class Client(GatewayClient):
@@ -18,6 +25,11 @@ class Client(GatewayClient):
                                            start_parameter_services=False,
                                            enable_rosout=False)
         super().__init__(self._cli_node, gateway, wait)
+
+    @property
+    def node(self):
+        """Return the CLI's own node (topics, actions and the graph of the run)."""
+        return self._cli_node
 
     def close(self) -> None:
         """Close the client, destroy the node and shut the private context down."""
@@ -44,10 +56,33 @@ class Client(GatewayClient):
         handled = 0
         try:
             while not count or handled < count:
-                executor.spin_once(timeout_sec=0.1)
+                executor.spin_once(timeout_sec=SPIN_PERIOD)
                 while received and (not count or handled < count):
                     handle(received.pop(0))
                     handled += 1
         finally:
             executor.shutdown(timeout_sec=1.0)
             self._cli_node.destroy_subscription(subscription)
+
+    @contextlib.contextmanager
+    def spinning(self):
+        """Yield ``spin_until(condition, timeout) -> bool`` for the CLI's node.
+
+        It runs the node's callbacks (subscriptions, the action client) until
+        ``condition()`` holds (True) or ``timeout`` seconds pass (False).
+        """
+        executor = SingleThreadedExecutor(context=self._context)
+        executor.add_node(self._cli_node)
+
+        def spin_until(condition, timeout: float) -> bool:
+            deadline = time.monotonic() + timeout
+            while not condition():
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    return False
+                executor.spin_once(timeout_sec=min(SPIN_PERIOD, left))
+            return True
+        try:
+            yield spin_until
+        finally:
+            executor.shutdown(timeout_sec=1.0)
