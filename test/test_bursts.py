@@ -64,13 +64,13 @@ def test_burst_of_waiting_calls_is_answered_within_its_timeout(start_node, clien
     assert taken.success, taken.message
     all_taken = time.monotonic()
     wait_until(lambda: all(f.done() for _, f in sent), 3 * ANSWER, 'an answer to every call')
-    # Each answer is due at its timeout after it was taken; a busy machine may add a second
-    # or two, far less than the defect's 6 s.
-    allowed = all_taken + timeout + 2.0
+    # Each answer is due at its timeout after it was taken; a busy machine may add a few
+    # seconds (2.4 s measured with both cores overloaded), less than the defect's 6 s.
+    allowed = all_taken + timeout + 4.0
     # (a done-callback rclpy skipped, a known race, leaves its call out of the count)
     late = [answered[n] - allowed for n in range(calls) if n in answered]
     assert max(late) <= 0, (f'{sum(t > 0 for t in late)} of {calls} answers more than '
-                            f'{timeout + 2.0:.1f} s after the node had taken them all; the '
+                            f'{timeout + 4.0:.1f} s after the node had taken them all; the '
                             f'last {max(late):.2f} s later than that')
 
 

@@ -180,7 +180,10 @@ def test_device_saying_yes_to_every_probe_does_not_make_up_a_device(make_gateway
     assert not response.success
     assert (list(response.devices), list(response.node_ids)) == ([], [])
     assert 'the scan was disturbed 3 times' in response.message, response.message
-    assert 'read back as None' in response.message
+    # The last scan's reason: the made-up identity read back as None, or, when this thread
+    # answered a probe after its wait on a loaded machine, a part nobody confirmed.
+    assert ('read back as None' in response.message
+            or 'no device confirmed' in response.message), response.message
 
 
 UINT8 = st.one_of(st.sampled_from([0, 1, 127, 128, 255]), st.integers(0, 0xFF))
