@@ -236,6 +236,18 @@ class DriveRig:
                                  f'(latest: {latest and latest.state}):\n'
                                  f'{self.node.output()[-3000:]}') from None
 
+    def drive_reaches(self, condition, what: str) -> None:
+        """Wait for ``condition(drive)``; fail saying where the drive stands then."""
+        try:
+            wait_until(lambda: condition(self.drive), ANSWER, what)
+        except AssertionError:
+            latest = self.latest()
+            raise AssertionError(
+                f'{what} not within {ANSWER} s: the drive is {self.drive.drive_state} at '
+                f'velocity {self.drive.velocity}; drive_state says '
+                f'{latest and (latest.state, "halted" if latest.halted else "not halted")}'
+            ) from None
+
     def client(self, service_type, service: str):
         """Return (creating once) a client of the node's ``service``."""
         if service not in self._clients:
@@ -276,8 +288,8 @@ class DriveRig:
         assert enabled.success, enabled.message
         assert self.drive.drive_state == 'OPERATION_ENABLED'
         targets = self.stream()
-        wait_until(lambda: self.drive.velocity == VELOCITY, ANSWER,
-                   f'the drive moving at {VELOCITY} (at {self.drive.velocity})')
+        self.drive_reaches(lambda drive: drive.velocity == VELOCITY,
+                           f'the drive moving at {VELOCITY}')
         return targets
 
     def stop_streams(self) -> None:
@@ -315,6 +327,11 @@ def rig(start_node, client_node, start_durand):
         each.close()
 
 
+def standing_still(drive: DurandDrive) -> bool:
+    """Return whether the drive is stopped: quick stop or power stage off, velocity 0."""
+    return drive.drive_state in STOPPED and drive.velocity == 0
+
+
 def stop_with(rig: DriveRig, signum) -> float:
     """Send ``signum`` to the node; return the time it was sent, once it exited cleanly."""
     signalled = time.monotonic()
@@ -335,7 +352,7 @@ def stop_frame_after(rig: DriveRig, word: int, since: int) -> int:
     """
     request = rig.recorder.first(lambda m: expedited_download(m) == (CONTROLWORD, 0, word),
                                  f'an SDO download of 0x{word:04X} to 0x6040', since)
-    # The drive confirmed it (scs 3): the gateway's bus was up when it went out.
+    # The drive took it (scs 3: download confirmed).
     rig.recorder.first(lambda m: m.arbitration_id == SDO_RESPONSE
                        and bytes(m.data[:4]) == b'\x60\x40\x60\x00',
                        'the drive confirming the download to 0x6040', request)
@@ -364,11 +381,9 @@ def test_a_signal_quick_stops_an_enabled_drive_before_the_node_exits(rig, signum
     axis.stop_streams()
     request = stop_frame_after(axis, QUICK_STOP, before)
     assert axis.recorder.frames[request][0] > signalled, 'the quick stop came before the signal'
-    wait_until(lambda: axis.drive.drive_state in STOPPED and axis.drive.velocity == 0, ANSWER,
-               f'the drive stopped (it is {axis.drive.drive_state} at {axis.drive.velocity})')
-    after = axis.recorder.mark()  # every frame the node sent is recorded before this
+    axis.drive_reaches(standing_still, 'the drive stopped')
+    axis.recorder.mark()  # every frame the node sent is recorded before this
     nothing_to_the_drive_after(axis, request, 'the quick stop')
-    assert after > request and axis.drive.drive_state in STOPPED
 
 
 def test_on_shutdown_disable_switches_the_power_stage_off(rig):
@@ -378,8 +393,8 @@ def test_on_shutdown_disable_switches_the_power_stage_off(rig):
     stop_with(axis, signal.SIGINT)
     axis.stop_streams()
     request = stop_frame_after(axis, DISABLE_VOLTAGE, before)
-    wait_until(lambda: axis.drive.drive_state == 'SWITCH_ON_DISABLED', ANSWER,
-               f'the drive SWITCH_ON_DISABLED (it is {axis.drive.drive_state})')
+    axis.drive_reaches(lambda drive: drive.drive_state == 'SWITCH_ON_DISABLED',
+                       'the drive SWITCH_ON_DISABLED')
     axis.recorder.mark()
     nothing_to_the_drive_after(axis, request, 'the disable')
     assert axis.drive.velocity == 0
@@ -414,9 +429,8 @@ def test_silence_halts_a_streaming_drive_and_a_new_target_resumes_it(rig):
     targets.stop()  # then silence
     halt = axis.recorder.first(halts, 'a controlword with the halt bit (8)', before)
     assert controlword_of(axis.recorder.messages()[halt]) & 0x8F == 0x0F, \
-        'the halt left operation enabled'
-    wait_until(lambda: axis.drive.velocity == 0, ANSWER,
-               f'the halted drive standing (at {axis.drive.velocity})')
+        'the halt did not keep operation enabled'
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the halted drive standing')
     assert axis.drive.drive_state == 'OPERATION_ENABLED'
     wait_until(lambda: axis.latest().halted, ANSWER, 'drive_state showing halted')
     # A new target: the halt bit goes, the drive moves at the new target.
@@ -454,9 +468,7 @@ def test_a_drive_in_pre_operational_is_still_halted_when_targets_stop(rig):
     axis.recorder.send(0x000, bytes([0x80, NODE]))  # enter PRE_OPERATIONAL
     wait_until(lambda: axis.drive.state == 127, ANSWER, 'the drive PRE_OPERATIONAL')
     targets.stop()
-    wait_until(lambda: axis.drive.velocity == 0, ANSWER,
-               f'the drive halted (it is {axis.drive.drive_state} at {axis.drive.velocity}, '
-               f'drive_state says halted={axis.latest().halted})')
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the drive halted')
 
 
 # 3. The gateway's heartbeat, watched by the drive.
@@ -487,9 +499,7 @@ def test_the_drive_watches_the_gateway_and_stops_by_itself_when_it_is_killed(rig
     axis.enable_moving()
     axis.node.process.send_signal(signal.SIGKILL)  # no shutdown code runs
     axis.node.process.wait(ANSWER)
-    wait_until(lambda: axis.drive.drive_state in STOPPED and axis.drive.velocity == 0, ANSWER,
-               f'the drive stopped by itself (it is {axis.drive.drive_state} at '
-               f'{axis.drive.velocity})')
+    axis.drive_reaches(standing_still, 'the drive stopped by itself')
 
 
 # 4. The drive's heartbeat lost.
@@ -531,9 +541,12 @@ def test_a_silent_drive_is_unknown_refuses_targets_and_needs_a_fresh_enable(rig)
 def test_a_drive_heard_again_without_a_boot_is_not_left_running(rig):
     # The drive's heartbeat pauses longer than heartbeat.timeout (a loose connector, a
     # stalled drive firmware) and comes back without a boot: the drive still runs in CSV at
-    # its last velocity. The gateway refuses every target until a fresh enable, so the
-    # robot program cannot even send 0; the command timeout must stop it then.
-    # Defect: the command timeout skips a drive that needs an enable, so it runs on.
+    # its last velocity. The robot program now streams another target. Either the targets
+    # reach the drive again, or the drive is stopped; it must not run on at a velocity
+    # nobody commands.
+    # Defect: the gateway refuses every target until a fresh enable (so the robot program
+    # cannot even send 0), and the command timeout skips a drive that needs an enable, so
+    # nothing ever halts it.
     axis = rig('-p', 'drives.command_timeout:=0.3', '-p', 'heartbeat.timeout:=0.6')
     targets = axis.enable_moving()
     states_before = len(axis.states)
@@ -542,11 +555,9 @@ def test_a_drive_heard_again_without_a_boot_is_not_left_running(rig):
     states_before = len(axis.states)
     axis.drive.set_value(0x1017, 0, 200)  # ... and comes back, the drive never booted
     axis.wait_state('OPERATION_ENABLED', states_before)
-    axis.target_refused(f'node {NODE} is OPERATION_ENABLED and needs a fresh enable')
-    wait_until(lambda: axis.drive.velocity == 0, ANSWER,
-               f'the drive stopped (it is {axis.drive.drive_state} at {axis.drive.velocity}; '
-               f'no target reaches it)')
-    targets.stop()
+    targets.value = VELOCITY + 500
+    axis.drive_reaches(lambda drive: drive.velocity in (0, VELOCITY + 500),
+                       f'the drive at the new target {VELOCITY + 500} or stopped')
 
 
 # 5. The managed node.
@@ -584,8 +595,7 @@ def test_deactivate_and_shutdown_of_the_managed_node_quick_stop_the_drive(rig):
     before = axis.recorder.mark()
     transition(Transition.TRANSITION_DEACTIVATE)
     request = stop_frame_after(axis, QUICK_STOP, before)
-    wait_until(lambda: axis.drive.drive_state in STOPPED and axis.drive.velocity == 0, ANSWER,
-               f'the drive stopped (it is {axis.drive.drive_state})')
+    axis.drive_reaches(standing_still, 'the drive stopped')
     refused = axis.command('enable', CSV)
     assert (refused.success, refused.abort_code) == (False, INACTIVE), refused.message
     axis.recorder.mark()
@@ -599,12 +609,11 @@ def test_deactivate_and_shutdown_of_the_managed_node_quick_stop_the_drive(rig):
     enabled = axis.command('enable', CSV)
     assert enabled.success, enabled.message
     axis.stream()
-    wait_until(lambda: axis.drive.velocity == VELOCITY, ANSWER, 'the drive moving again')
+    axis.drive_reaches(lambda drive: drive.velocity == VELOCITY, 'the drive moving again')
     before = axis.recorder.mark()
     transition(Transition.TRANSITION_ACTIVE_SHUTDOWN)
     request = stop_frame_after(axis, QUICK_STOP, before)
-    wait_until(lambda: axis.drive.drive_state in STOPPED and axis.drive.velocity == 0, ANSWER,
-               f'the drive stopped (it is {axis.drive.drive_state})')
+    axis.drive_reaches(standing_still, 'the drive stopped')
     axis.stop_streams()
     axis.recorder.mark()
     nothing_to_the_drive_after(axis, request, 'the quick stop at shutdown')
