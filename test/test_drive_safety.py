@@ -461,8 +461,8 @@ def test_a_drive_in_pre_operational_is_still_halted_when_targets_stop(rig):
     # A drive leaves OPERATIONAL while it moves: another tool's NMT command here; a drive
     # also goes there by itself on a communication error (CiA 301, 0x1029 default). Its
     # power stage runs on, but it takes no RPDO in PRE_OPERATIONAL (its heartbeat says so).
-    # Defect: the command timeout's halt goes in RPDO1 all the same, the drive never gets
-    # it and runs on at its last velocity, while drive_state says halted.
+    # Once a defect (before 573df06): the command timeout's halt went in RPDO1 all the same,
+    # the drive never got it and ran on at its last velocity, while drive_state said halted.
     axis = rig('-p', 'drives.command_timeout:=0.3')
     targets = axis.enable_moving()
     axis.recorder.send(0x000, bytes([0x80, NODE]))  # enter PRE_OPERATIONAL
