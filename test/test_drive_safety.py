@@ -1,0 +1,667 @@
+"""Every way out of the gateway stops its drives, on the bus, with the node as its own process.
+
+The installed ``cbcan_node`` (or ``cbcan_lifecycle_node``) runs as a child process on a
+udp_multicast bus of its own; the simulated CiA 402 drive (durand) lives in this process on
+that bus, and a raw recorder here keeps every frame. This process plays the robot program:
+``~/drive_command`` and ``~/node_<id>/target`` by rclpy, ``~/node_<id>/drive_state`` read.
+
+What is asserted is what the gateway decides and what the drive did: the frames the gateway
+sent (an SDO download to the controlword 0x6040, an RPDO carrying it, the consumer heartbeat
+0x1016:1), their order against the signal or against a marker frame this process sent, and
+the drive's own state and velocity. Nothing is proved by sleeping; the one test of absence
+(no halt without a command timeout) watches for a bounded while.
+
+Frames to the drive: RPDO1 0x200 + id carries the controlword (with the target position and
+the mode), RPDO2 0x300 + id the target velocity and torque, SDO requests go to 0x600 + id.
+"""
+
+import signal
+import struct
+import threading
+import time
+
+import can
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
+import pytest
+from std_msgs.msg import Float64
+
+from cbcan_ros.msg import DriveState
+from cbcan_ros.ros.drives import STATE_QOS
+from cbcan_ros.ros.node import SHUTDOWN_LIMIT
+from cbcan_ros.simulation.durand_drive import DurandDrive
+from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.srv import DriveCommand, NmtCommand
+
+from conftest import wait_until
+from node_process import (
+    arguments,
+    BusRecorder,
+    call,
+    namespace,
+    private_bus,
+    service_client,
+    START_TIMEOUT,
+    STOP_TIMEOUT,
+)
+
+NODE = 7
+CSV = 9
+VELOCITY = 1500  # counts/s: the target the drive moves at (joint scale 1)
+ANSWER = 15.0  # ceiling for what a quiet machine does within a fraction of a second
+COMMAND_TIMEOUT = 10.0  # the drive_command timeout the tests ask for: far above a transition
+OWN_ID = 100  # the gateway's heartbeat node id
+LOCAL_CONTROL = 0x08000021
+INACTIVE = 0x08000022
+MARKER = 0x7F0  # no CANopen service uses it: this process's marks in the recording
+
+RPDO1, RPDO2 = 0x200 + NODE, 0x300 + NODE
+RPDOS = {0x200 + NODE, 0x300 + NODE, 0x400 + NODE, 0x500 + NODE}
+SDO_REQUEST, SDO_RESPONSE = 0x600 + NODE, 0x580 + NODE
+CONTROLWORD = 0x6040
+CONSUMER_HEARTBEAT = 0x1016
+HALT = 1 << 8
+QUICK_STOP, DISABLE_VOLTAGE = 0x0002, 0x0000
+STOPPED = ('QUICK_STOP_ACTIVE', 'SWITCH_ON_DISABLED')
+
+PDOS = (
+    PdoConfig('tpdo', 1, ((0x6041, 0), (0x6061, 0), (0x6077, 0)), 255, 20),
+    PdoConfig('tpdo', 2, ((0x6064, 0), (0x606C, 0)), 255, 10),
+    PdoConfig('rpdo', 1, ((0x6040, 0), (0x607A, 0), (0x6060, 0)), 255),
+    PdoConfig('rpdo', 2, ((0x60FF, 0), (0x6071, 0)), 255),
+)
+
+
+# Reading the frames.
+
+def is_download(message) -> bool:
+    """Return whether ``message`` is an SDO download request to the drive (any kind)."""
+    return (message.arbitration_id == SDO_REQUEST and len(message.data) > 0
+            and message.data[0] >> 5 in (0, 1, 6))  # segment, initiate, block
+
+
+def expedited_download(message):
+    """Return (index, subindex, value) of an expedited SDO download to the drive, else None."""
+    data = bytes(message.data)
+    if message.arbitration_id != SDO_REQUEST or len(data) != 8 or data[0] & 0xE3 != 0x23:
+        return None
+    index, subindex = struct.unpack_from('<HB', data, 1)
+    size = 4 - (data[0] >> 2 & 3)
+    return index, subindex, int.from_bytes(data[4:4 + size], 'little')
+
+
+def controlword_of(message):
+    """Return the controlword a frame to the drive carries (RPDO1 or SDO download), else None."""
+    if message.arbitration_id == RPDO1 and len(message.data) >= 2:
+        return struct.unpack_from('<H', bytes(message.data))[0]
+    written = expedited_download(message)
+    if written and written[:2] == (CONTROLWORD, 0):
+        return written[2]
+    return None
+
+
+def velocity_of(message):
+    """Return the velocity actual value in the drive's TPDO2, else None."""
+    if message.arbitration_id == 0x280 + NODE and len(message.data) == 8:
+        return struct.unpack_from('<i', bytes(message.data), 4)[0]
+    return None
+
+
+def shown(frames) -> str:
+    """Return frames as 'id#data' text, for failure messages."""
+    return ' '.join(f'{m.arbitration_id:03X}#{bytes(m.data).hex()}' for m in frames[-40:])
+
+
+class Recorder(BusRecorder):
+    """Every frame on the bus, and marks: frames this process sent to split the recording.
+
+    Frames arrive in the order they were sent, so a frame recorded after a mark was sent
+    after this process sent the mark.
+    """
+
+    def __init__(self, group: str, port: int):
+        super().__init__(group, port)
+        self._marks = 0
+
+    def messages(self, since: int = 0) -> list:
+        """Return the frames recorded from position ``since`` on."""
+        return [message for _, message in self.frames[since:]]
+
+    def mark(self) -> int:
+        """Send a marker frame; return its position in the recording, once recorded."""
+        self._marks += 1
+        data = self._marks.to_bytes(4, 'little')
+        self.send(MARKER, data)
+
+        def position():
+            for number, (_, message) in enumerate(list(self.frames)):
+                if message.arbitration_id == MARKER and bytes(message.data) == data:
+                    return number + 1  # +1: 0 would read as "not yet"
+            return None
+        return wait_until(position, ANSWER, 'the marker frame recorded') - 1
+
+    def send(self, can_id: int, data: bytes) -> None:
+        """Send a frame on the bus, as another device or master would."""
+        self._bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
+
+    def first(self, condition, what: str, since: int = 0, timeout: float = ANSWER) -> int:
+        """Wait for a frame ``condition(message)`` from ``since`` on; return its position."""
+        def found():
+            for number, (_, message) in enumerate(list(self.frames)[since:], since):
+                if condition(message):
+                    return number + 1
+            return None
+        try:
+            return wait_until(found, timeout, what) - 1
+        except AssertionError:
+            raise AssertionError(f'{what} not seen; the last frames: '
+                                 f'{shown(self.messages(since))}') from None
+
+
+class Targets:
+    """A robot program's target stream on ``~/node_<id>/target``, every 20 ms, in a thread."""
+
+    PERIOD = 0.02
+
+    def __init__(self, publisher, value: float):
+        self._publisher = publisher
+        self.value = value
+        self.published = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._publisher.publish(Float64(data=float(self.value)))
+            self.published += 1
+            self._stop.wait(self.PERIOD)
+
+    def stop(self) -> None:
+        """Stop publishing."""
+        self._stop.set()
+        self._thread.join()
+
+
+class DriveRig:
+    """A gateway process with drive NODE, the drive in this process, the bus recorded."""
+
+    def __init__(self, start_node, client_node, start_durand, *parameters: str,
+                 program: str = 'cbcan_node'):
+        self.group, self.port = private_bus()
+        self.recorder = Recorder(self.group, self.port)
+        self._start_durand = start_durand
+        self.drive = self.start_drive()
+        self.name = f'{namespace()}/cbcan'
+        self.client_node = client_node
+        self.node = start_node(arguments(
+            self.name, '-p', 'can.interface:=udp_multicast', '-p', f'can.channel:={self.group}',
+            '-p', f'drives.nodes:=[{NODE}]', *parameters), self.port, program)
+        self._lock = threading.Lock()
+        self.states = []
+        client_node.create_subscription(DriveState, f'{self.name}/node_{NODE}/drive_state',
+                                        self._keep, STATE_QOS)
+        self.publisher = client_node.create_publisher(
+            Float64, f'{self.name}/node_{NODE}/target', 10)
+        self._clients = {}
+        self._streams = []
+
+    def start_drive(self) -> DurandDrive:
+        """Start a drive NODE on the bus (a new one boots, as after power-on)."""
+        drive = self._start_durand(NODE, kind=DurandDrive, interface='udp_multicast',
+                                   channel=self.group, bus_options={'port': self.port},
+                                   pdos=PDOS)
+        wait_until(lambda: drive.running, ANSWER, 'the drive receiving')
+        return drive
+
+    def _keep(self, message) -> None:
+        with self._lock:
+            self.states.append(message)
+
+    def latest(self):
+        """Return the latest DriveState message, None before one."""
+        with self._lock:
+            return self.states[-1] if self.states else None
+
+    def wait_state(self, state: str, since: int = 0, timeout: float = START_TIMEOUT) -> None:
+        """Wait for a drive_state message with ``state`` (among those from ``since`` on)."""
+        def seen():
+            with self._lock:
+                return any(m.state == state for m in self.states[since:])
+        try:
+            wait_until(seen, timeout, f'drive_state {state}')
+        except AssertionError:
+            latest = self.latest()
+            raise AssertionError(f'drive_state {state} not published within {timeout} s '
+                                 f'(latest: {latest and latest.state}):\n'
+                                 f'{self.node.output()[-3000:]}') from None
+
+    def drive_reaches(self, condition, what: str) -> None:
+        """Wait for ``condition(drive)``; fail saying where the drive stands then."""
+        try:
+            wait_until(lambda: condition(self.drive), ANSWER, what)
+        except AssertionError:
+            latest = self.latest()
+            raise AssertionError(
+                f'{what} not within {ANSWER} s: the drive is {self.drive.drive_state} at '
+                f'velocity {self.drive.velocity}; drive_state says '
+                f'{latest and (latest.state, "halted" if latest.halted else "not halted")}'
+            ) from None
+
+    def client(self, service_type, service: str):
+        """Return (creating once) a client of the node's ``service``."""
+        if service not in self._clients:
+            self._clients[service] = service_client(self.client_node, service_type,
+                                                    f'{self.name}/{service}', self.node)
+        return self._clients[service]
+
+    def command(self, command: str, mode: int = 0, timeout: float = COMMAND_TIMEOUT):
+        """Call ``~/drive_command``; return the response."""
+        return call(self.client(DriveCommand, 'drive_command'), DriveCommand.Request(
+            node_id=NODE, command=command, mode=mode, timeout=timeout), command, self.node,
+            timeout + ANSWER)
+
+    def nmt_start(self) -> None:
+        """Start the drive (NMT): its PDOs flow only in OPERATIONAL."""
+        answer = call(self.client(NmtCommand, 'nmt_command'), NmtCommand.Request(
+            node_id=NODE, command=1), 'nmt start', self.node)
+        assert answer.success, answer.message
+        wait_until(lambda: self.drive.state == 5, ANSWER, 'the drive OPERATIONAL')
+
+    def stream(self, value: float = VELOCITY) -> Targets:
+        """Publish ``value`` as the drive's target every 20 ms until the test ends."""
+        wait_until(lambda: self.publisher.get_subscription_count() > 0, START_TIMEOUT,
+                   'the node subscribed to the target topic')
+        targets = Targets(self.publisher, value)
+        self._streams.append(targets)
+        return targets
+
+    def enable_moving(self, heard: bool = True) -> Targets:
+        """Start the drive, enable it in CSV and stream VELOCITY; return once it moves.
+
+        ``heard``: wait for the drive_state that shows the gateway has read the drive first.
+        """
+        if heard:
+            self.wait_state('SWITCH_ON_DISABLED')
+        self.nmt_start()
+        enabled = self.command('enable', CSV)
+        assert enabled.success, enabled.message
+        assert self.drive.drive_state == 'OPERATION_ENABLED'
+        targets = self.stream()
+        self.drive_reaches(lambda drive: drive.velocity == VELOCITY,
+                           f'the drive moving at {VELOCITY}')
+        return targets
+
+    def stop_streams(self) -> None:
+        """Stop every target stream."""
+        for targets in self._streams:
+            targets.stop()
+        self._streams = []
+
+    def target_refused(self, text: str) -> None:
+        """Wait for the node's log line that a target was refused, saying ``text``.
+
+        The node logs the first refusal of each kind: the proof a target reached it.
+        """
+        line = f'node_{NODE}/target: {text}'
+        wait_until(lambda: line in self.node.output(), ANSWER,
+                   f'{line!r} in the log:\n{self.node.output()[-3000:]}')
+
+    def close(self) -> None:
+        """Stop the target streams and the recorder (the fixtures stop node and drive)."""
+        self.stop_streams()
+        self.recorder.close()
+
+
+@pytest.fixture
+def rig(start_node, client_node, start_durand):
+    """Return ``rig(*parameters, program=...)``: a DriveRig, closed after the test."""
+    made = []
+
+    def factory(*parameters: str, program: str = 'cbcan_node') -> DriveRig:
+        made.append(DriveRig(start_node, client_node, start_durand, *parameters,
+                             program=program))
+        return made[-1]
+    yield factory
+    for each in made:
+        each.close()
+
+
+def standing_still(drive: DurandDrive) -> bool:
+    """Return whether the drive is stopped: quick stop or power stage off, velocity 0."""
+    return drive.drive_state in STOPPED and drive.velocity == 0
+
+
+def stop_with(rig: DriveRig, signum) -> float:
+    """Send ``signum`` to the node; return the time it was sent, once it exited cleanly."""
+    signalled = time.monotonic()
+    rig.node.process.send_signal(signum)
+    status = rig.node.wait(STOP_TIMEOUT)
+    exited = time.monotonic() - signalled
+    output = rig.node.output()
+    assert status == 0, f'exit status {status}:\n{output[-3000:]}'
+    assert exited < SHUTDOWN_LIMIT, f'exited after {exited:.1f} s:\n{output[-3000:]}'
+    assert 'Traceback' not in output, output[-3000:]
+    return signalled
+
+
+def stop_frame_after(rig: DriveRig, word: int, since: int) -> int:
+    """Wait for the SDO download of ``word`` to 0x6040 from ``since`` on and the drive's answer.
+
+    Return the request's position in the recording.
+    """
+    request = rig.recorder.first(lambda m: expedited_download(m) == (CONTROLWORD, 0, word),
+                                 f'an SDO download of 0x{word:04X} to 0x6040', since)
+    # The drive took it (scs 3: download confirmed).
+    rig.recorder.first(lambda m: m.arbitration_id == SDO_RESPONSE
+                       and bytes(m.data[:4]) == b'\x60\x40\x60\x00',
+                       'the drive confirming the download to 0x6040', request)
+    return request
+
+
+def nothing_to_the_drive_after(rig: DriveRig, position: int, what: str) -> None:
+    """Assert no RPDO and no SDO download reached the drive after ``position``.
+
+    Uploads may go on (a managed node deactivated still reads what no TPDO brings).
+    """
+    sent = [m for m in rig.recorder.messages(position + 1)
+            if m.arbitration_id in RPDOS or is_download(m)]
+    assert not sent, f'frames commanding the drive after {what}: {shown(sent)}'
+
+
+# 1. Signals.
+
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_a_signal_quick_stops_an_enabled_drive_before_the_node_exits(rig, signum):
+    # The robot program keeps streaming targets through the signal, as a controller does.
+    axis = rig('-p', 'drives.command_timeout:=0.0')
+    axis.enable_moving()
+    before = axis.recorder.mark()
+    signalled = stop_with(axis, signum)
+    axis.stop_streams()
+    request = stop_frame_after(axis, QUICK_STOP, before)
+    assert axis.recorder.frames[request][0] > signalled, 'the quick stop came before the signal'
+    axis.drive_reaches(standing_still, 'the drive stopped')
+    axis.recorder.mark()  # every frame the node sent is recorded before this
+    nothing_to_the_drive_after(axis, request, 'the quick stop')
+
+
+def test_on_shutdown_disable_switches_the_power_stage_off(rig):
+    axis = rig('-p', 'drives.command_timeout:=0.0', '-p', 'drives.on_shutdown:=disable')
+    axis.enable_moving()
+    before = axis.recorder.mark()
+    stop_with(axis, signal.SIGINT)
+    axis.stop_streams()
+    request = stop_frame_after(axis, DISABLE_VOLTAGE, before)
+    axis.drive_reaches(lambda drive: drive.drive_state == 'SWITCH_ON_DISABLED',
+                       'the drive SWITCH_ON_DISABLED')
+    axis.recorder.mark()
+    nothing_to_the_drive_after(axis, request, 'the disable')
+    assert axis.drive.velocity == 0
+
+
+def test_on_shutdown_none_sends_nothing_to_the_controlword(rig):
+    axis = rig('-p', 'drives.command_timeout:=0.0', '-p', 'drives.on_shutdown:=none')
+    targets = axis.enable_moving()
+    targets.stop()  # the last targets reach the node before the signal
+    before = axis.recorder.mark()
+    stop_with(axis, signal.SIGINT)
+    axis.recorder.mark()  # every frame the node sent is recorded before this
+    written = [m for m in axis.recorder.messages(before) if controlword_of(m) is not None]
+    assert not written, f'controlwords at shutdown with on_shutdown none: {shown(written)}'
+    # Left as it is: nothing stopped it (it has no consumer heartbeat to watch).
+    assert axis.drive.drive_state == 'OPERATION_ENABLED'
+    assert axis.drive.velocity == VELOCITY
+
+
+# 2. The command timeout.
+
+def halts(message) -> bool:
+    """Return whether ``message`` carries a controlword with the halt bit to the drive."""
+    word = controlword_of(message)
+    return word is not None and bool(word & HALT)
+
+
+def test_silence_halts_a_streaming_drive_and_a_new_target_resumes_it(rig):
+    axis = rig('-p', 'drives.command_timeout:=0.3')
+    before = axis.recorder.mark()
+    targets = axis.enable_moving()
+    targets.stop()  # then silence
+    halt = axis.recorder.first(halts, 'a controlword with the halt bit (8)', before)
+    assert controlword_of(axis.recorder.messages()[halt]) & 0x8F == 0x0F, \
+        'the halt did not keep operation enabled'
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the halted drive standing')
+    assert axis.drive.drive_state == 'OPERATION_ENABLED'
+    wait_until(lambda: axis.latest().halted, ANSWER, 'drive_state showing halted')
+    # A new target: the halt bit goes, the drive moves at the new target.
+    resumed = axis.stream(VELOCITY + 500)
+    release = axis.recorder.first(lambda m: controlword_of(m) is not None
+                                  and not controlword_of(m) & HALT,
+                                  'a controlword without the halt bit', halt)
+    axis.recorder.first(lambda m: velocity_of(m) == VELOCITY + 500,
+                        f'the drive moving at {VELOCITY + 500} again', release)
+    wait_until(lambda: not axis.latest().halted, ANSWER, 'drive_state no longer halted')
+    resumed.stop()
+
+
+def test_command_timeout_0_never_halts(rig):
+    axis = rig('-p', 'drives.command_timeout:=0.0')
+    targets = axis.enable_moving()
+    targets.stop()
+    start = axis.recorder.mark()
+    time.sleep(1.5)  # a test of absence: five times the timeout of the test above
+    axis.recorder.mark()
+    halted = [m for m in axis.recorder.messages(start) if halts(m)]
+    assert not halted, f'halted without a command timeout: {shown(halted)}'
+    assert axis.drive.velocity == VELOCITY
+    assert not axis.latest().halted
+
+
+def test_a_drive_in_pre_operational_is_still_halted_when_targets_stop(rig):
+    # A drive leaves OPERATIONAL while it moves: another tool's NMT command here; a drive
+    # also goes there by itself on a communication error (CiA 301, 0x1029 default). Its
+    # power stage runs on, but it takes no RPDO in PRE_OPERATIONAL (its heartbeat says so).
+    # Once a defect (before 573df06): the command timeout's halt went in RPDO1 all the same,
+    # the drive never got it and ran on at its last velocity, while drive_state said halted.
+    axis = rig('-p', 'drives.command_timeout:=0.3')
+    targets = axis.enable_moving()
+    axis.recorder.send(0x000, bytes([0x80, NODE]))  # enter PRE_OPERATIONAL
+    wait_until(lambda: axis.drive.state == 127, ANSWER, 'the drive PRE_OPERATIONAL')
+    targets.stop()
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the drive halted')
+
+
+# 3. The gateway's heartbeat, watched by the drive.
+
+def consumer_write(message) -> bool:
+    """Return whether ``message`` writes (OWN_ID << 16) | 300 ms to the drive's 0x1016:1."""
+    return expedited_download(message) == (CONSUMER_HEARTBEAT, 1, OWN_ID << 16 | 300)
+
+
+def test_the_drive_watches_the_gateway_and_stops_by_itself_when_it_is_killed(rig):
+    axis = rig('-p', f'heartbeat.node_id:={OWN_ID}', '-p', 'heartbeat.period:=0.05',
+               '-p', 'drives.consumer_time:=0.3', '-p', 'drives.command_timeout:=0.0')
+    axis.wait_state('SWITCH_ON_DISABLED')
+    axis.recorder.first(consumer_write, 'the consumer heartbeat written to 0x1016:1')
+    entry = struct.pack('<I', OWN_ID << 16 | 300)
+    wait_until(lambda: axis.drive.value(CONSUMER_HEARTBEAT, 1) == entry, ANSWER,
+               'the drive holding 0x1016:1 = 0x0064012C')
+    # After a boot the drive has its default (no consumer): the gateway writes it again.
+    booted = axis.recorder.mark()
+    answer = call(axis.client(NmtCommand, 'nmt_command'), NmtCommand.Request(
+        node_id=NODE, command=129), 'nmt reset node', axis.node)
+    assert answer.success, answer.message
+    axis.recorder.first(lambda m: m.arbitration_id == 0x700 + NODE and bytes(m.data) == b'\0',
+                        'the drive booting', booted)
+    axis.recorder.first(consumer_write, '0x1016:1 written again after the boot', booted)
+    wait_until(lambda: axis.drive.value(CONSUMER_HEARTBEAT, 1) == entry, ANSWER,
+               'the drive holding 0x1016:1 again')
+    axis.enable_moving()
+    axis.node.process.send_signal(signal.SIGKILL)  # no shutdown code runs
+    axis.node.process.wait(ANSWER)
+    axis.drive_reaches(standing_still, 'the drive stopped by itself')
+
+
+# 4. The drive's heartbeat lost.
+
+def test_a_silent_drive_is_unknown_refuses_targets_and_needs_a_fresh_enable(rig):
+    axis = rig('-p', 'drives.command_timeout:=0.0', '-p', 'heartbeat.timeout:=1.5')
+    targets = axis.enable_moving()
+    states_before = len(axis.states)
+    axis.drive.stop()  # silent, as when its cable is pulled; the targets keep coming
+    axis.wait_state('UNKNOWN', states_before)
+    lost = axis.recorder.mark()
+    axis.target_refused(f'node {NODE} is not heard')
+    refused = axis.command('enable', CSV)
+    assert not refused.success
+    assert 'UNKNOWN' in refused.message and 'nothing was sent' in refused.message
+    assert refused.state == 'UNKNOWN'
+    axis.recorder.mark()
+    # Uploads to a lost drive would be harmless; nothing may command it.
+    sent = [m for m in axis.recorder.messages(lost) if m.arbitration_id in RPDOS
+            or is_download(m)]
+    assert not sent, f'frames to the lost drive: {shown(sent)}'
+
+    # It boots again (power back): SWITCH_ON_DISABLED, and targets refused until an enable.
+    states_before = len(axis.states)
+    axis.drive = axis.start_drive()
+    axis.wait_state('SWITCH_ON_DISABLED', states_before)
+    booted = axis.recorder.mark()
+    axis.target_refused(f'node {NODE} is SWITCH_ON_DISABLED and needs a fresh enable')
+    axis.recorder.mark()
+    sent = [m for m in axis.recorder.messages(booted) if m.arbitration_id in RPDOS
+            or is_download(m)]
+    assert not sent, f'frames to the rebooted drive before an enable: {shown(sent)}'
+    assert axis.drive.drive_state == 'SWITCH_ON_DISABLED'
+    targets.stop()
+    axis.stop_streams()
+    axis.enable_moving()
+
+
+def test_a_drive_heard_again_without_a_boot_is_not_left_running(rig):
+    # The drive's heartbeat pauses longer than heartbeat.timeout (a loose connector, a
+    # stalled drive firmware) and comes back without a boot: the drive still runs in CSV at
+    # its last velocity. The robot program now streams another target. Either the targets
+    # reach the drive again, or the drive is stopped; it must not run on at a velocity
+    # nobody commands.
+    # Defect: the gateway refuses every target until a fresh enable (so the robot program
+    # cannot even send 0), and the command timeout skips a drive that needs an enable, so
+    # nothing ever halts it.
+    axis = rig('-p', 'drives.command_timeout:=0.3', '-p', 'heartbeat.timeout:=0.6')
+    targets = axis.enable_moving()
+    states_before = len(axis.states)
+    axis.drive.set_value(0x1017, 0, 0)  # its heartbeat pauses...
+    axis.wait_state('UNKNOWN', states_before)
+    states_before = len(axis.states)
+    axis.drive.set_value(0x1017, 0, 200)  # ... and comes back, the drive never booted
+    axis.wait_state('OPERATION_ENABLED', states_before)
+    targets.value = VELOCITY + 500
+    axis.drive_reaches(lambda drive: drive.velocity in (0, VELOCITY + 500),
+                       f'the drive at the new target {VELOCITY + 500} or stopped')
+
+
+# 5. The managed node.
+
+MANAGED = ('-p', f'heartbeat.node_id:={OWN_ID}', '-p', 'drives.consumer_time:=0.3',
+           '-p', 'drives.command_timeout:=0.0')
+
+
+def managed_transition(axis: DriveRig, transition_id: int) -> None:
+    """Make a lifecycle transition of the managed node; it must succeed."""
+    request = ChangeState.Request(transition=Transition(id=transition_id))
+    assert call(axis.client(ChangeState, 'change_state'), request,
+                f'transition {transition_id}', axis.node).success
+
+
+def configure_once_read(axis: DriveRig) -> None:
+    """Configure the managed node; return once it has read the drive (inactive still).
+
+    Its last step of reading a drive is writing the consumer heartbeat (0x1016:1).
+    """
+    managed_transition(axis, Transition.TRANSITION_CONFIGURE)
+    axis.recorder.first(consumer_write, 'the consumer heartbeat written to 0x1016:1',
+                        timeout=START_TIMEOUT)
+
+
+def test_deactivate_and_shutdown_of_the_managed_node_quick_stop_the_drive(rig):
+    axis = rig(*MANAGED, program='cbcan_lifecycle_node')
+
+    def transition(transition_id: int) -> None:
+        managed_transition(axis, transition_id)
+
+    configure_once_read(axis)
+    transition(Transition.TRANSITION_ACTIVATE)
+    axis.enable_moving(heard=False)  # drive_state: see the test below
+    before = axis.recorder.mark()
+    transition(Transition.TRANSITION_DEACTIVATE)
+    request = stop_frame_after(axis, QUICK_STOP, before)
+    axis.drive_reaches(standing_still, 'the drive stopped')
+    refused = axis.command('enable', CSV)
+    assert (refused.success, refused.abort_code) == (False, INACTIVE), refused.message
+    axis.recorder.mark()
+    nothing_to_the_drive_after(axis, request, 'the quick stop at deactivate')
+
+    # Active again: the targets still streaming are refused until a fresh enable.
+    transition(Transition.TRANSITION_ACTIVATE)
+    axis.target_refused(f'node {NODE} is SWITCH_ON_DISABLED and needs a fresh enable')
+    assert axis.drive.drive_state in STOPPED
+    axis.stop_streams()
+    enabled = axis.command('enable', CSV)
+    assert enabled.success, enabled.message
+    axis.stream()
+    axis.drive_reaches(lambda drive: drive.velocity == VELOCITY, 'the drive moving again')
+    before = axis.recorder.mark()
+    transition(Transition.TRANSITION_ACTIVE_SHUTDOWN)
+    request = stop_frame_after(axis, QUICK_STOP, before)
+    axis.drive_reaches(standing_still, 'the drive stopped')
+    axis.stop_streams()
+    axis.recorder.mark()
+    nothing_to_the_drive_after(axis, request, 'the quick stop at shutdown')
+
+
+def test_the_managed_node_publishes_the_drive_state_once_active(rig):
+    # The drive was read while the node was inactive (drive_state is not published then):
+    # once active, a robot program subscribing to drive_state must learn the state.
+    axis = rig(*MANAGED, program='cbcan_lifecycle_node')
+    configure_once_read(axis)
+    managed_transition(axis, Transition.TRANSITION_ACTIVATE)
+    axis.wait_state('SWITCH_ON_DISABLED', timeout=ANSWER)
+
+
+# 6. read_only.
+
+COMMANDS = [('enable', CSV), ('disable', 0), ('quick_stop', 0), ('halt', 0), ('resume', 0),
+            ('fault_reset', 0), ('set_mode', CSV), ('home', 0)]
+
+
+def test_read_only_refuses_every_command_and_writes_nothing_even_at_shutdown(rig):
+    axis = rig('-p', 'read_only:=true', '-p', f'heartbeat.node_id:={OWN_ID}',
+               '-p', 'drives.consumer_time:=0.3')
+    axis.wait_state('SWITCH_ON_DISABLED')
+    for command, mode in COMMANDS:
+        answer = axis.command(command, mode)
+        assert not answer.success, command
+        assert answer.abort_code == LOCAL_CONTROL, (command, answer.message)
+        assert 'read-only' in answer.message and 'nothing was sent' in answer.message
+    # Another master starts and enables the drive: the gateway sees it moving...
+    axis.recorder.send(0x000, bytes([1, NODE]))
+    wait_until(lambda: axis.drive.state == 5, ANSWER, 'the drive OPERATIONAL')
+    for index, value in ((0x6060, CSV), (0x60FF, VELOCITY), (CONTROLWORD, 0x06),
+                         (CONTROLWORD, 0x07), (CONTROLWORD, 0x0F)):
+        axis.drive.set_value(index, 0, value)
+    axis.wait_state('OPERATION_ENABLED')
+    targets = axis.stream()
+    axis.target_refused('the gateway is read-only')
+    targets.stop()
+    # ... and at shutdown leaves it to that master: a read-only gateway writes nothing.
+    stop_with(axis, signal.SIGINT)
+    axis.recorder.mark()
+    written = [m for m in axis.recorder.messages() if m.arbitration_id in RPDOS
+               or is_download(m)]
+    assert not written, f'a read-only gateway wrote: {shown(written)}'
+    nmt = [m for m in axis.recorder.messages() if m.arbitration_id == 0x000]
+    assert [bytes(m.data) for m in nmt] == [bytes([1, NODE])], \
+        f"NMT commands besides the other master's: {shown(nmt)}"
+    assert axis.drive.drive_state == 'OPERATION_ENABLED'
+    assert axis.drive.velocity == VELOCITY
+
