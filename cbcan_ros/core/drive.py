@@ -16,7 +16,9 @@ Safety lives here, below ROS:
   powered drive before the bus closes;
 - with a gateway heartbeat, each drive is told to watch it (0x1016) whenever it is first heard
   and after every boot, so it stops by itself when the gateway dies;
-- a drive that faults, stops heartbeating or boots refuses targets until a fresh ``enable``.
+- a drive that faults, stops heartbeating or boots refuses targets until a fresh ``enable``;
+  one found running when heard (heard again without a boot, or at the gateway's start) is
+  quick-stopped: no program of the gateway's commands it.
 """
 
 import asyncio
@@ -28,21 +30,13 @@ import time
 from typing import Callable, Dict, List, Optional, Tuple
 
 from . import abort_codes, cia402
+from . import drive_checks as checks
+from . import drive_safety as safety
 from .bus import prompt
 from .coroutine_runner import CoroutineRunner
-from .drive_checks import (
-    command_problem,
-    ENABLED_COMMANDS,
-    integer_problem,
-    NOTHING_SENT,
-    request_problem,
-    state_problem,
-    value_problem,
-)
 from .drive_commands import DriveCommands
 from .drive_cycle import FeedbackCycle
 from .drive_objects import decode, DriveObjects, FEEDBACK
-from .drive_safety import command_timed_out, SHUTDOWN_WAIT, stop_motion, watch_the_gateway
 from .drive_status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed
 from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED, OPERATIONAL
 from .pdo_mapping import ReceivedPdo
@@ -135,7 +129,7 @@ class DriveService:
         """Answer every command in progress, then send ``on_shutdown`` to every powered drive.
 
         Called first in the gateway's shutdown, while frames may still go out. Waits at most
-        ``SHUTDOWN_WAIT`` for the drives to take the stop.
+        ``safety.SHUTDOWN_WAIT`` for the drives to take the stop.
         """
         with self._lock:
             if self._closing:
@@ -143,7 +137,7 @@ class DriveService:
             self._closing = True
         self._cycle.stop()
         self._runner.close()
-        stop_motion(self._drives.values(), self.settings, self._lock, SHUTTING_DOWN)
+        safety.stop_motion(self._drives.values(), self.settings, self._lock, SHUTTING_DOWN)
         for node_id in self._drives:
             self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
 
@@ -156,11 +150,11 @@ class DriveService:
         ended = self._runner.submit(self._commands.cancel_all(reason))
         if ended is not None:
             try:
-                ended.result(SHUTDOWN_WAIT)
+                ended.result(safety.SHUTDOWN_WAIT)
             except TimeoutError:
-                LOGGER.error('drive commands did not end within %.1f s of: %s', SHUTDOWN_WAIT,
-                             reason)
-        stop_motion(self._drives.values(), self.settings, self._lock, reason)
+                LOGGER.error('drive commands did not end within %.1f s of: %s',
+                             safety.SHUTDOWN_WAIT, reason)
+        safety.stop_motion(self._drives.values(), self.settings, self._lock, reason)
 
     def command(self, node_id: int, command: str, mode: int = 0,
                 timeout: float = 0.0) -> 'Future[DriveResult]':
@@ -186,9 +180,9 @@ class DriveService:
         """
         refused = self._drive_refusal(node_id, enabled=True)
         if refused is None:
-            problem = (integer_problem('position', position, 32)
-                       or integer_problem('velocity', velocity, 32, unsigned=True))
-            refused = problem and failed(self.status(node_id), f'{problem}; {NOTHING_SENT}')
+            problem = (checks.integer_problem('position', position, 32)
+                       or checks.integer_problem('velocity', velocity, 32, unsigned=True))
+            refused = problem and failed(self.status(node_id), f'{problem}; {checks.NOTHING_SENT}')
         if refused:
             return resolved(refused), lambda: None
         drive = self._drives[node_id]
@@ -222,9 +216,9 @@ class DriveService:
             if refusal:
                 return failed(status, refusal, abort_codes.LOCAL_CONTROL)
             bits = 32 if index != cia402.TARGET_TORQUE else 16
-            problem = value_problem('target', value, bits)
+            problem = checks.value_problem('target', value, bits)
             if problem:
-                return failed(status, f'{problem}; {NOTHING_SENT}')
+                return failed(status, f'{problem}; {checks.NOTHING_SENT}')
             drive.last_target = time.monotonic()
         if status.mode == cia402.PROFILE_POSITION:
             self._runner.call_soon(lambda: self._commands.set_point(drive, round(value)))
@@ -405,7 +399,9 @@ class DriveService:
             return
         self.take(drive, {index: values[index] for index in (*FEEDBACK, cia402.ERROR_CODE)
                           if index in values})
-        await watch_the_gateway(self._sdo_batch, drive.node_id, self.settings)
+        if self.status(drive.node_id).state == cia402.OPERATION_ENABLED:
+            await safety.stop_unattended(drive, self._lock)
+        await safety.watch_the_gateway(self._sdo_batch, drive.node_id, self.settings)
 
     async def _read_error(self, drive: DriveRecord) -> None:
         values = await asyncio.wrap_future(drive.objects.read([cia402.ERROR_CODE],
@@ -420,7 +416,7 @@ class DriveService:
     def _tick(self) -> None:
         for drive in self._drives.values():
             self._poll(drive)
-            word = command_timed_out(drive, self.settings, self._lock)
+            word = safety.command_timed_out(drive, self.settings, self._lock)
             if word is not None:
                 self._notify(self.status(drive.node_id))
                 drive.objects.write({cia402.CONTROLWORD: word}, DEFAULT_TIMEOUT)
@@ -452,15 +448,15 @@ class DriveService:
     def _command_refusal(self, node_id: int, command: str, mode: int,
                          timeout: float) -> Optional[DriveResult]:
         """Return why a command cannot run (nothing is sent then), or None: the one check."""
-        problem = request_problem(command, mode, timeout)
+        problem = checks.request_problem(command, mode, timeout)
         if problem:
-            return self._refused(node_id, f'{problem}; {NOTHING_SENT}')
-        refused = self._drive_refusal(node_id, enabled=command in ENABLED_COMMANDS)
+            return self._refused(node_id, f'{problem}; {checks.NOTHING_SENT}')
+        refused = self._drive_refusal(node_id, enabled=command in checks.ENABLED_COMMANDS)
         if refused is not None:
             return refused
         status = self.status(node_id)
-        problem = command_problem(status, command, mode)
-        return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
+        problem = checks.command_problem(status, command, mode)
+        return failed(status, f'{problem}; {checks.NOTHING_SENT}') if problem else None
 
     def _drive_refusal(self, node_id: int, enabled: bool) -> Optional[DriveResult]:
         """Return why drive ``node_id`` takes no request now, or None."""
@@ -469,16 +465,16 @@ class DriveService:
             problem = (f'node {node_id} is not a drive (parameter drives.nodes: '
                        f'{self.node_ids or "none"})')
         if problem:
-            return self._refused(node_id, f'{problem}; {NOTHING_SENT}')
+            return self._refused(node_id, f'{problem}; {checks.NOTHING_SENT}')
         with self._lock:
             drive = self._drives[node_id]
             status, heard, closing = drive.status, drive.heard, self._closing
         refusal = self._protection.refuses_write(node_id, cia402.CONTROLWORD)
         if refusal:
-            return failed(status, f'{refusal}; {NOTHING_SENT}', abort_codes.LOCAL_CONTROL)
+            return failed(status, f'{refusal}; {checks.NOTHING_SENT}', abort_codes.LOCAL_CONTROL)
         problem = (SHUTTING_DOWN if closing else self._bus_down()
-                   or state_problem(status, heard, enabled))
-        return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
+                   or checks.state_problem(status, heard, enabled))
+        return failed(status, f'{problem}; {checks.NOTHING_SENT}') if problem else None
 
     def _refused(self, node_id: int, message: str) -> DriveResult:
         drive = self._drives.get(node_id)

@@ -10,6 +10,7 @@ from typing import Optional
 from . import cia402
 from .drive_status import DriveStatus
 from .sdo import MAX_TIMEOUT
+from .text import quoted
 
 COMMANDS = ('enable', 'disable', 'quick_stop', 'halt', 'resume', 'fault_reset', 'set_mode',
             'home')
@@ -22,7 +23,7 @@ NOTHING_SENT = 'nothing was sent'
 def request_problem(command: str, mode: int, timeout: float) -> Optional[str]:
     """Return what is wrong with a command request itself, or None."""
     if command not in COMMANDS:
-        return f'command {command!r} is unknown: allowed {", ".join(COMMANDS)}'
+        return f'command {quoted(command)} is unknown: allowed {", ".join(COMMANDS)}'
     if mode and mode not in MODES:
         allowed = ', '.join(f'{code} {name}' for code, name in cia402.MODE_NAMES.items())
         return f'mode {mode} is not a CiA 402 mode of operation: allowed 0 (keep), {allowed}'

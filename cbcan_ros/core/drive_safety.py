@@ -5,6 +5,7 @@
   called while the gateway shuts down or a managed node is deactivated, before the bus closes.
 - :func:`command_timed_out`: a drive in a streaming mode without a new target for
   ``drives.command_timeout`` is halted (controlword bit 8): it decelerates and holds.
+- :func:`stop_unattended`: a drive found running when it is heard (again) is quick-stopped.
 - :func:`watch_the_gateway`: the drive's heartbeat consumer (0x1016:1) set to the gateway's
   heartbeat, so that the drive's own 0x6007 reaction stops it when the gateway, its computer
   or the bus dies; SIGKILL and power loss included.
@@ -58,6 +59,25 @@ def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
         LOGGER.info('%s: %s sent to drives %s%s', reason, settings.on_shutdown,
                     ', '.join(str(node_id) for node_id, _ in sent),
                     f'; not taken by {", ".join(failed)}' if failed else '')
+
+
+async def stop_unattended(drive: DriveRecord, lock) -> None:
+    """Quick-stop a drive found OPERATION_ENABLED when heard: nothing of ours commands it.
+
+    Heard again without a boot (its heartbeat paused) it runs on at its last target, and its
+    targets are refused until a fresh enable; at the gateway's start it may be one a crashed
+    gateway left running. Stopped by SDO, which applies at once.
+    """
+    with lock:
+        drive.controlword = cia402.QUICK_STOP
+    result = await asyncio.wrap_future(drive.objects.write_by_sdo(
+        {cia402.CONTROLWORD: cia402.QUICK_STOP}, CONSUMER_TIMEOUT))
+    if result.success:
+        LOGGER.warning('drive %d was OPERATION_ENABLED when heard, commanded by nobody here: '
+                       'quick stop sent; enable it to move it', drive.node_id)
+    else:
+        LOGGER.error('drive %d is OPERATION_ENABLED, commanded by nobody here, and could not '
+                     'be stopped: %s', drive.node_id, result.message)
 
 
 def command_timed_out(drive: DriveRecord, settings: DriveSettings, lock) -> Optional[int]:

@@ -105,8 +105,7 @@ class DriveTopics:
         self._thread.start()
         service.add_listener(self._on_change)
         service.add_cycle_listener(self._publish_joint_states)
-        for status in service.statuses():
-            self._on_change(status)
+        self.publish_states()
 
     def destroy(self) -> None:
         """Stop publishing and take the topics and the action away (after the bus closed)."""
@@ -120,6 +119,11 @@ class DriveTopics:
                 self._node.destroy_publisher(publisher)
         for subscription in self._subscriptions:
             self._node.destroy_subscription(subscription)
+
+    def publish_states(self) -> None:
+        """Publish every drive's state as it is now (a managed node just activated)."""
+        for status in self._service.statuses():
+            self._on_change(status)
 
     def start_command(self, request) -> 'Future[DriveResult]':
         """Run a ``DriveCommand`` request; the future resolves to its answer."""

@@ -249,6 +249,7 @@ class GatewayInterface:
         self.active = True
         self.gateway.set_operational(True)
         self._publish_states()
+        self._drives.publish_states()  # changes while inactive were not published
 
     def deactivate(self) -> None:
         """Answer every new call "inactive", stop the drives and publishing.
