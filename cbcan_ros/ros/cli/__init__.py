@@ -20,6 +20,8 @@ Examples (the gateway started by ``make run`` is ``/can0/cbcan``)::
     cbcan_cli lss-configure 0x319 0x51 0x10000 7 --node-id 12 --store
     cbcan_cli pdo-echo 5                                  # what node 5 sends (its TPDOs)
     cbcan_cli pdo-write 5 1 "Demo UNSIGNED8=7" 0x2001=300  # node 5's RPDO 1
+    cbcan_cli dump 7F0:7F0                                 # raw CAN frames, as candump
+    cbcan_cli send 7F0#DEADBEEF 18FF0001#01.02            # as cansend
 
 Objects are given by index (a number) or by the name the node's EDS or DCF file gives them.
 The file is the gateway's parameter ``node_<id>.eds`` (asked of the running gateway) or
@@ -37,14 +39,14 @@ from typing import Optional, Sequence
 
 from ..client import DEFAULT_GATEWAY, DEFAULT_WAIT, RequestFailed
 from ..service_caller import GatewayUnavailable
-from . import lss, mailbox, nmt, pdo, sdo
+from . import lss, mailbox, nmt, pdo, raw, sdo
 from .arguments import positive_seconds
 from .errors import print_refusal, UsageError
 from .standalone_client import Client
 
 # The command groups, each a module with add_commands(commands), in the order --help lists
 # their commands.
-COMMAND_GROUPS = (sdo, nmt, mailbox, lss, pdo)
+COMMAND_GROUPS = (sdo, nmt, mailbox, lss, pdo, raw)
 
 
 def build_parser() -> argparse.ArgumentParser:
