@@ -22,9 +22,10 @@ import pytest
 from rclpy.node import Node
 from test_diagnostics import DiagnosticsRecorder, values
 
-from cbcan_ros.msg import CanFrame
+from cbcan_ros.msg import CanFrame, LssIdentity, Pdo
 from cbcan_ros.ros.config import NodeParameters
 from cbcan_ros.ros.parameter_checks import ConfigurationError
+from cbcan_ros.ros.pdo import PDO_QOS
 from cbcan_ros.ros.raw_frames import RAW_QOS
 from cbcan_ros.srv import SdoRead, SendFrames
 
@@ -196,6 +197,66 @@ def test_frames_sent_by_service_and_topic_reach_another_program_in_order(make_ga
         assert [key(frame) for frame in got] == [key(frame) for frame in topic_frames]
     finally:
         other.shutdown()
+
+
+def test_canopen_goes_on_undisturbed_while_raw_frames_flow_both_ways(make_gateway,
+                                                                     start_durand):
+    gateway = make_gateway(raw__filters=RAW_FILTERS, raw__send_allow=['7F0:7F0'],
+                           pdo__nodes=[5], lss__probe_timeout=0.15)
+    # A new device without node id, to be given one by LSS meanwhile.
+    identity = (0x319, 0x51, 0x10000, 0x77)
+    newcomer = start_durand(255, channel=gateway.channel, lss=True, identity=identity)
+    recorder = FrameRecorder(gateway.client_node, '/cbcan/from_can_bus')
+    pdos = []
+    gateway.client_node.create_subscription(Pdo, '/cbcan/node_5/rpdo', pdos.append, PDO_QOS)
+    subscribed(gateway.node, '/cbcan/from_can_bus')
+    gateway.wait_for_states({5: 'PRE_OPERATIONAL'})
+    other = gateway.raw_bus()
+    streaming = threading.Event()
+    streaming.set()
+    streamed = []
+
+    def stream() -> None:
+        # Another program's frames, about 500 a second, for as long as CANopen is exercised.
+        number = 0
+        while streaming.is_set():
+            frame = raw_message(EXTENDED | number & 0xFFFF, number.to_bytes(4, 'little'),
+                                extended=True)
+            other.send(frame)
+            streamed.append(key(frame))
+            number += 1
+            if number % 5 == 0:
+                time.sleep(0.01)
+
+    streamer = threading.Thread(target=stream, daemon=True)
+    streamer.start()
+    try:
+        wait_until(lambda: len(recorder.frames) > 20, PROMPT, 'streamed frames published')
+        assert gateway.call('nmt_command', node_id=5, command=1).success
+        configured = gateway.call('lss_configure', node_id=20, identity=LssIdentity(
+            vendor_id=identity[0], product_code=identity[1], revision=identity[2],
+            serial=identity[3]))
+        assert configured.success, configured.message
+        for number in range(20):
+            read = gateway.call('sdo_read', node_id=5, index=0x1000, subindex=0)
+            assert read.success, read.message
+            sent = gateway.call('send_frames', frames=[can_frame(0x7F0, bytes([number]))])
+            assert sent.success, sent.message
+        wait_until(lambda: len(pdos) >= 3, PROMPT, "node 5's PDOs")
+        gateway.wait_for_states({5: 'OPERATIONAL', 20: 'PRE_OPERATIONAL'})
+        streaming.clear()
+        streamer.join()
+        got = received_from(other, {0x7F0}, 20)
+        wait_until(lambda: recorder.keys()[-1:] == streamed[-1:], PROMPT,
+                   'the last streamed frame published')
+    finally:
+        streaming.clear()
+        other.shutdown()
+    assert newcomer.node_id == 20
+    assert [frame.data[0] for frame in got] == list(range(20))
+    published = recorder.keys()
+    first = streamed.index(published[0])
+    assert published == streamed[first:], 'streamed frames lost, repeated or reordered'
 
 
 def test_send_frames_refuses_a_whole_call_naming_the_frame_and_sends_none(make_gateway):
