@@ -85,15 +85,16 @@ class RawFrameTopics:
         self._closing = False
         self._thread = threading.Thread(target=self._publish_queued, name='raw publisher',
                                         daemon=True)
-        if not (raw.receiving or not raw.settings.send_allow.empty):
-            return
+        sending = not raw.settings.send_allow.empty
+        if not raw.receiving and not sending:
+            return  # no topics: can_msgs is not needed
         from can_msgs.msg import Frame as FrameMessage  # checked by the parameters
         self._message_type = FrameMessage
         if raw.receiving:
             self._publisher = node.create_publisher(FrameMessage, FROM_BUS, RAW_QOS)
             self._thread.start()
             raw.add_listener(self._queue_frame)
-        if not raw.settings.send_allow.empty:
+        if sending:
             self._subscription = node.create_subscription(FrameMessage, TO_BUS,
                                                           self._on_to_bus, RAW_QOS)
 
@@ -112,8 +113,7 @@ class RawFrameTopics:
         try:
             refusal = self._inactive()
             if refusal:
-                response.success, response.sent = False, 0
-                response.message = f'{refusal}'
+                response.success, response.sent, response.message = False, 0, refusal
                 return response
             result = self._raw.send([frame_of(frame) for frame in request.frames])
             response.success, response.sent, response.message = (result.success, result.sent,
