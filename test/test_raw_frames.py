@@ -141,8 +141,11 @@ def mixed_frames(count: int) -> list:
     return frames
 
 
-def is_raw(frame_id: int) -> bool:
-    return frame_id in RAW_IDS or frame_id & 0x1FFF0000 == EXTENDED
+def assert_in_bus_order_each_once(published: list, sent: list) -> None:
+    """Assert that ``published`` holds frames of ``sent`` (unique), each once, in its order."""
+    place = {frame: number for number, frame in enumerate(sent)}
+    places = [place[frame] for frame in published]
+    assert places == sorted(set(places)), 'frames published out of order or twice'
 
 
 def test_frames_another_program_sends_are_published_once_in_bus_order(make_gateway):
@@ -255,8 +258,12 @@ def test_canopen_goes_on_undisturbed_while_raw_frames_flow_both_ways(make_gatewa
     assert newcomer.node_id == 20
     assert [frame.data[0] for frame in got] == list(range(20))
     published = recorder.keys()
-    first = streamed.index(published[0])
-    assert published == streamed[first:], 'streamed frames lost, repeated or reordered'
+    assert_in_bus_order_each_once(published, streamed)
+    # Every one was handed to the publisher: none dropped by the gateway. (Whether a subscriber
+    # that falls far behind gets each is DDS's; the burst of 600 above proves none is lost
+    # within the publisher's history, and make bench counts them at 5,000 frames/s.)
+    statistics = gateway.node.gateway.raw.statistics()
+    assert (statistics.received, statistics.lost) == (len(streamed), 0)
 
 
 def test_send_frames_refuses_a_whole_call_naming_the_frame_and_sends_none(make_gateway):
@@ -470,9 +477,11 @@ def test_the_installed_node_bridges_raw_frames_both_ways_while_canopen_goes_on(s
     node = start_node(['-r', f'__ns:={namespace}', '-p', 'can.interface:=udp_multicast',
                        '-p', f'can.channel:={group}', '-p', 'simulation.devices:=[5]',
                        '-p', 'nodes:=[5]', '-p', 'heartbeat.timeout:=2.0',
+                       '-p', 'diagnostics_period:=0.2',
                        '-p', "raw.filters:=['0:0', '18FF0000:1FFF0000']",
                        '-p', "raw.send_allow:=['7F0:7F0', '18FF0000:1FFF0000']"], port)
     recorder = FrameRecorder(client_node, f'{name}/from_can_bus')
+    diagnostics = DiagnosticsRecorder(client_node)
     states = StateWatcher(client_node, name)
     sdo_read = service_client(client_node, SdoRead, f'{name}/sdo_read', node)
     send = service_client(client_node, SendFrames, f'{name}/send_frames', node)
@@ -528,9 +537,11 @@ def test_the_installed_node_bridges_raw_frames_both_ways_while_canopen_goes_on(s
     # (a subscriber gets nothing before DDS has matched it).
     stream_keys = [key(frame) for frame in published if frame.is_extended and
                    frame.id != EXTENDED | 0xFFFF]
-    first = streamed.index(stream_keys[0])
-    assert stream_keys == streamed[first:first + len(stream_keys)] and \
-        len(stream_keys) == len(streamed) - first, 'streamed frames lost, repeated or reordered'
+    assert_in_bus_order_each_once(stream_keys, streamed)
+    assert stream_keys[-1] == streamed[-1]
+    # The node handed every frame it took to its publisher (DDS delivers them or not).
+    diagnostics.wait_for(f'{name}: CAN bus', DiagnosticStatus.OK, where=lambda v: int(
+        v['Raw frames received']) >= len(streamed) and v['Raw frames lost'] == '0')
     # The device's SDO answers and heartbeats are published; the gateway's own frames (its
     # SDO requests, the raw frames it sent) never come back, though udp_multicast echoes them.
     assert 0x585 in ids and 0x705 in ids
