@@ -102,6 +102,18 @@ def test_dump_prints_one_line_a_frame_with_canopen_named(rig, capsys):
     assert re.fullmatch(r'0x70[235] \[1\] 7F  heartbeat node [235] PRE_OPERATIONAL', line), line
 
 
+def test_dump_says_so_when_the_gateway_publishes_nothing(make_gateway, capsys):
+    make_gateway()
+    client = Client('/cbcan', PROMPT)
+    try:
+        assert cli(client, 'dump') == 2
+    finally:
+        client.close()
+    assert capsys.readouterr().err == ('error: /cbcan publishes no raw frames: its parameter '
+                                       'raw.filters is empty (["0:0"] publishes every '
+                                       'standard frame)\n')
+
+
 def _documented_lines():
     text = (ROOT / 'docs' / 'raw_frames.md').read_text()
     block = re.search(r'```text\n(0x705 \[1\] 7F  heartbeat node 5.*?)```', text, re.S)

@@ -121,6 +121,9 @@ def cmd_dump(client: Client, args) -> int:
         filters = parse_filters(args.filters)
     except ValueError as error:
         raise UsageError(f'FILTER {error}; allowed: {FILTER_FORMAT}') from None
+    if not [text for text in client.parameter('raw.filters') or [] if text.strip()]:
+        raise UsageError(f'{client.gateway} publishes no raw frames: its parameter '
+                         f'raw.filters is empty (["0:0"] publishes every standard frame)')
 
     shown = [0]
 
