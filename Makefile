@@ -53,6 +53,29 @@ $(BUILD_STAMP): $(VENV_STAMP) $(BUILD_INPUTS)
 	    --cmake-args -DPython3_EXECUTABLE=$(PY) -DCMAKE_BUILD_TYPE=RelWithDebInfo
 	touch $@
 
+# can_msgs (ros_canopen's can_msgs/msg/Frame, for the raw CAN topics) where no ROS install
+# brings ros-jazzy-can-msgs: built from the released definition in a workspace of its own
+# under test/, which a user's colcon build of this repository never finds (colcon does not
+# look below a package). tools/ros-env puts it on the paths of the tests and `make run`.
+CAN_MSGS_WS    := $(ROOT)/test/can_msgs_ws
+CAN_MSGS_STAMP := $(CAN_MSGS_WS)/install/.can_msgs.built
+
+build: $(CAN_MSGS_STAMP)
+clean: clean-can-msgs
+
+$(CAN_MSGS_STAMP): $(VENV_STAMP) $(shell find $(CAN_MSGS_WS)/src -print 2>/dev/null)
+	cd $(CAN_MSGS_WS) && env _ROS_WHEELS_BOOTSTRAP_COMPLETE=1 \
+	  PATH="$(VENV)/bin:$$PATH" \
+	  AMENT_PREFIX_PATH="$(VENV)" CMAKE_PREFIX_PATH="$(VENV)" \
+	  LD_LIBRARY_PATH="$(VENV)/lib$${LD_LIBRARY_PATH:+:$$LD_LIBRARY_PATH}" \
+	  $(VENV)/bin/colcon build --event-handlers console_direct- console_cohesion+ \
+	    --cmake-args -DPython3_EXECUTABLE=$(PY) -DCMAKE_BUILD_TYPE=RelWithDebInfo
+	touch $@
+
+.PHONY: clean-can-msgs
+clean-can-msgs:
+	rm -rf $(CAN_MSGS_WS)/build $(CAN_MSGS_WS)/install $(CAN_MSGS_WS)/log
+
 # The `pytest` executable (not `python -m pytest`) leaves the working directory
 # off sys.path, so the source cbcan_ros/ (no generated msg/srv) cannot shadow
 # the installed package.
@@ -79,6 +102,7 @@ bench: build
 	$(ROS_ENV) python $(ROOT)/bench/bench_sdo.py $(ARGS)
 	$(ROS_ENV) python $(ROOT)/bench/bench_lss.py $(filter --quick,$(ARGS))
 	$(ROS_ENV) python $(ROOT)/bench/bench_pdo.py $(ARGS)
+	$(ROS_ENV) python $(ROOT)/bench/bench_raw.py $(filter --quick,$(ARGS))
 	$(ROS_ENV) python $(ROOT)/bench/bench_shutdown.py $(filter --quick,$(ARGS))
 
 clean:

@@ -62,6 +62,7 @@ from cbcan_ros.srv import (  # noqa: E402
     RegisterMailbox,
     SdoRead,
     SdoWrite,
+    SendFrames,
 )
 
 SERVICE_TYPES = {
@@ -75,6 +76,7 @@ SERVICE_TYPES = {
     'lss_inquire': LssInquire,
     'pdo_write': PdoWrite,
     'drive_command': DriveCommand,
+    'send_frames': SendFrames,
 }
 
 DEFAULT_DEVICES = [2, 3, 5]

@@ -11,6 +11,7 @@ also while another thread is blocked in ``recv``:
   is shut down or ``clear()`` heals it. A bus opened afterwards works normally.
 * ``fail_send(text)``: every ``send`` on the channel raises ``can.CanOperationError(text)``
   (nothing reaches the bus) until ``clear()``; applies to buses opened later too.
+  ``fail_send(text, after=n)`` lets ``n`` more frames out first: an adapter pulled midway.
 * ``fail_open(text)``: constructing a FaultyBus on the channel raises
   ``can.CanInitializationError(text)`` until ``clear()``.
 * ``bus_off()``: every open FaultyBus on the channel receives an error frame as SocketCAN
@@ -53,6 +54,7 @@ class FaultController:
         self._lock = threading.Lock()
         self._open_error: Optional[str] = None
         self._send_error: Optional[str] = None
+        self._sends_left = 0
         self._buses: List['FaultyBus'] = []
         self._sent: List[can.Message] = []
         self.open_count = 0
@@ -82,10 +84,14 @@ class FaultController:
             bus.fail_receive(error_message)
         return len(buses)
 
-    def fail_send(self, error_message: str = 'transmit failed') -> None:
-        """Make every send on the channel raise ``can.CanOperationError`` until ``clear()``."""
+    def fail_send(self, error_message: str = 'transmit failed', after: int = 0) -> None:
+        """Make every send on the channel raise ``can.CanOperationError`` until ``clear()``.
+
+        ``after``: the number of sends that still succeed before the first fails.
+        """
         with self._lock:
             self._send_error = error_message
+            self._sends_left = after
 
     def fail_open(self, error_message: str = 'no such adapter') -> None:
         """Make opening a bus on the channel raise ``can.CanInitializationError``."""
@@ -139,7 +145,9 @@ class FaultController:
 
     def _check_send(self) -> None:
         with self._lock:
-            if self._send_error is not None:
+            if self._send_error is not None and self._sends_left:
+                self._sends_left -= 1
+            elif self._send_error is not None:
                 self.send_failures += 1
                 raise can.CanOperationError(self._send_error)
 

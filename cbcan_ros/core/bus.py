@@ -147,6 +147,8 @@ class BusSupervisor:
         self._error_frames = 0
         self._listener_errors = set()
         self._listeners: List[Callable[[BusStatus], None]] = []
+        self._frame_watcher: Optional[Callable[[can.Message, float], None]] = None
+        self._on_sent: Optional[Callable[[can.Message], None]] = None
         self._frames: queue.SimpleQueue = queue.SimpleQueue()  # (id, data, stamp) or None
         self._thread = threading.Thread(target=self._run, name='can-bus', daemon=True)
         self._dispatcher = threading.Thread(target=self._dispatch, name='can-dispatch',
@@ -156,6 +158,18 @@ class BusSupervisor:
     def add_listener(self, listener: Callable[[BusStatus], None]) -> None:
         """Call ``listener(status)`` whenever the bus goes down or comes back up."""
         self._listeners.append(listener)
+
+    def watch_frames(self, watcher: Callable[[can.Message, float], None],
+                     on_sent: Optional[Callable[[can.Message], None]] = None) -> None:
+        """Call ``watcher(message, stamp)`` for every frame taken, before anything else sees it.
+
+        Every frame: data, remote, extended and error frames, from the receive thread, so
+        ``watcher`` must return at once. ``on_sent(message)``, if given, is told of every frame
+        about to go out through the bus, python-can's periodic ones (SYNC) included, so frames
+        that come back on a bus that echoes can be told apart. Call before :meth:`start`.
+        """
+        self._frame_watcher = watcher
+        self._on_sent = on_sent
 
     @property
     def status(self) -> BusStatus:
@@ -248,6 +262,7 @@ class BusSupervisor:
                 retry = min(retry * 2, MAX_RETRY)
                 continue
             opened = time.monotonic()
+            self._note_sends(bus)
             self._coming_up(bus)
             reason = self._receive(bus)
             self._close(bus)
@@ -267,6 +282,7 @@ class BusSupervisor:
         frames = self._frames
         subscribers = self._network.subscribers
         notify = self._network.notify
+        watcher = self._frame_watcher
         while True:
             if self._stopping:
                 return None
@@ -279,6 +295,11 @@ class BusSupervisor:
             if message is None:
                 continue
             stamp = time.monotonic()
+            if watcher is not None:
+                try:
+                    watcher(message, stamp)
+                except Exception as error:  # noqa: BLE001 - it must not deafen CANopen
+                    self._handler_failed(error)
             if message.is_error_frame:
                 self._error_frames += 1
                 if message.arbitration_id & CAN_ERR_BUSOFF:
@@ -313,6 +334,21 @@ class BusSupervisor:
                 notify(frame_id, message.data, stamp)
             except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest
                 self._handler_failed(error)
+
+    def _note_sends(self, bus: can.BusABC) -> None:
+        """Have every frame sent through ``bus`` told to ``on_sent`` (see watch_frames)."""
+        on_sent = self._on_sent
+        if on_sent is None:
+            return
+        send = bus.send
+
+        # On the instance: python-can's periodic tasks send through bus.send as well. Told
+        # before it goes: an echo may come back before send returns.
+        def send_noted(message: can.Message, timeout: Optional[float] = None) -> None:
+            on_sent(message)
+            send(message, timeout)
+
+        bus.send = send_noted
 
     def _dispatch(self) -> None:
         """Hand the queued frames to canopen's subscribers, in the order they were taken."""

@@ -27,6 +27,7 @@ from .heartbeat_producer import HeartbeatProducer
 from .lss_frames import is_all_waiting, probe_wait
 from .lss_master import LssMaster
 from .pdo import PdoService
+from .raw_frames import canopen_ids, echoes, RawFrames, RawSettings
 from .request_queue import Deadlines, resolved
 from .sdo import Access, batch_refusal, check_node_id, one_each, refusal, SdoResult
 from .sdo_channel import SdoChannel, SdoStatistics
@@ -70,6 +71,7 @@ class GatewayConfig:
     heartbeat_node_id: int = 0  # the gateway's own heartbeat (0x700 + id); 0: none
     heartbeat_period: float = 0.1
     drives: DriveSettings = DriveSettings()  # its nodes are watched and PDO-served as well
+    raw: RawSettings = RawSettings()  # raw CAN frames beside CANopen (raw.filters, send_allow)
 
 
 @dataclass(frozen=True)
@@ -170,6 +172,9 @@ class Gateway:
                                    config.write_protection, self._bus_down)
         self.emcy.add_listener(lambda emergency: self.drives.on_emcy(
             emergency.node_id, emergency.error_code))
+        self.raw = RawFrames(self.bus, config.raw, config.write_protection,
+                             lambda: canopen_ids(self.pdo),
+                             echoes(config.interface, config.bus_options))
         self._deadlines = Deadlines()
         self.lss = LssMaster(
             self.network, self._deadlines,
@@ -236,6 +241,7 @@ class Gateway:
         # silent; then no heartbeat frame after the first moment of shutdown.
         self.heartbeat.stop()
         self.sync.stop()
+        self.raw.stop()
         self.bus.restrict_sending(_closes_a_running_operation, SHUTTING_DOWN)
         self._guarding.stop()
         self.lss.close(SHUTTING_DOWN)

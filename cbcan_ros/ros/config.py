@@ -15,7 +15,7 @@ from rclpy.parameter import Parameter
 from ..core import eds
 from ..core.gateway import GatewayConfig
 from ..core.write_protection import RULE_FORMAT, WriteProtection
-from . import drive_parameters
+from . import drive_parameters, raw_parameters
 from . import parameter_checks as checks
 
 
@@ -151,6 +151,7 @@ class NodeParameters:
                       'also in nodes and pdo.nodes',
                       additional_constraints=checks.NODE_IDS)
         drive_parameters.declare(self._declare, self._given_ids('drives.nodes'))
+        raw_parameters.declare(self._declare)
         self._declare('simulation.devices', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) of simulated CANopen devices to put on the bus, for '
                       'trying the gateway without hardware; empty on a real bus',
@@ -231,7 +232,8 @@ class NodeParameters:
             sync_counter_overflow=value('sync.counter_overflow'),
             heartbeat_node_id=value('heartbeat.node_id'),
             heartbeat_period=value('heartbeat.period'),
-            drives=drives)
+            drives=drives,
+            raw=raw_parameters.settings(self._strings))
 
     def joints(self) -> Dict[int, drive_parameters.Joint]:
         """Return every drive's joint (name, scales); raise ConfigurationError when wrong."""

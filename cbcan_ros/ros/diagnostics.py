@@ -57,7 +57,8 @@ class Diagnostics:
     - ``<node>: CAN bus``: ERROR while the bus is down (the message says why), WARN when error
       frames arrived since the last publication, else OK. Frame rates are taken between two
       publications. It also shows the gateway's own heartbeat (node id, period, state, frames
-      sent), which the bus carries or not.
+      sent), which the bus carries or not, and the raw CAN bridge's frames (received past
+      raw.filters, sent, refused, and lost when publishing fell far behind) while it is on.
     - ``<node>: node <id>`` for every device that is expected (parameter ``nodes``), was
       heard, sent an EMCY or was sent an SDO request: ERROR when expected but silent
       (NOT_DETECTED), STALE when a device that is not expected fell silent, WARN while it has
@@ -133,7 +134,17 @@ class Diagnostics:
             'Error frames': status.error_frames,
             'Frames dropped': status.frames_dropped,
             **self._heartbeat_values(),
+            **self._raw_values(),
         })
+
+    def _raw_values(self) -> Dict[str, object]:
+        """Return the raw CAN bridge's counts, while raw.filters or raw.send_allow is set."""
+        raw = self._gateway.raw
+        if not raw.receiving and raw.settings.send_allow.empty:
+            return {}
+        counts = raw.statistics()
+        return {'Raw frames received': counts.received, 'Raw frames sent': counts.sent,
+                'Raw frames refused': counts.refused, 'Raw frames lost': counts.lost}
 
     def _heartbeat_values(self) -> Dict[str, object]:
         heartbeat = self._gateway.heartbeat.status()

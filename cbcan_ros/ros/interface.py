@@ -51,6 +51,7 @@ from .diagnostics import Diagnostics
 from .drives import DriveTopics, fill_command
 from .emcy import EmcyPublisher
 from .pdo import check_request, entry_values, PdoTopics
+from .raw_frames import RawFrameTopics
 from .rclpy_gaps import drain
 
 NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -201,6 +202,10 @@ class GatewayInterface:
             for service_type, name, callback in (
                 (NmtCommand, 'nmt_command', self._on_nmt_command),
                 (NmtState, 'nmt_state', self._on_nmt_state))]
+        # Raw CAN frames: ~/send_frames answers at once, drained with the services above.
+        self._raw = RawFrameTopics(node, self.gateway.raw, lambda: None if self.active
+                                   else INACTIVE, self.gateway.config.channel, **options)
+        self._services.append(self._raw.service)
 
         self._states_publisher = node.create_publisher(NodeStates, '~/node_states',
                                                        NODE_STATES_QOS)
@@ -293,6 +298,7 @@ class GatewayInterface:
         self._emcy.destroy()
         self._drives.destroy()
         self._pdo_topics.destroy()
+        self._raw.destroy()
         self._diagnostics.destroy()
         logging.getLogger(PACKAGE).removeHandler(self._log_handler)
 
