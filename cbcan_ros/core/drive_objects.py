@@ -22,7 +22,7 @@ from typing import Dict, Iterable, List, Set
 from . import cia402
 from .pdo import PdoService
 from .pdo_mapping import EntryValue
-from .request_queue import resolved
+from .request_queue import answer, resolved
 from .sdo import Access, SdoResult
 
 # Feedback objects: what the gateway reads of a drive, in TPDOs or by SDO.
@@ -66,7 +66,7 @@ def all_of(futures: List[Future]) -> 'Future[SdoResult]':
             last = remaining[0] == 0
         if last:
             results = [future.result() for future in futures]
-            done.set_result(next((r for r in results if not r.success), results[0]))
+            answer(done, next((r for r in results if not r.success), results[0]))
 
     for future in futures:
         future.add_done_callback(collect)
@@ -154,7 +154,7 @@ class DriveObjects:
         done: Future = Future()
 
         def collect(finished: Future) -> None:
-            done.set_result({index: decode(index, result.data) for index, result
+            answer(done, {index: decode(index, result.data) for index, result
                              in zip(indexes, finished.result(), strict=True)
                              if result.success})
 
@@ -165,7 +165,7 @@ class DriveObjects:
         batch = self._sdo_batch([Access(self.node_id, index, 0, True, value)
                                  for index, value in data], timeout)
         done: Future = Future()
-        batch.add_done_callback(lambda finished: done.set_result(next(
+        batch.add_done_callback(lambda finished: answer(done, next(
             (result for result in finished.result() if not result.success),
             SdoResult.ok())))
         return done
