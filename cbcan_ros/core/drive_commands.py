@@ -2,10 +2,10 @@
 
 Each runs on the drives' event loop (``drive.DriveService``): it sends a controlword, then
 awaits the statusword that shows the drive took it, and decides the next step from that, so
-a transition takes as long as the drive needs and no longer (python canopen's ``BaseNode402``
-blocks its caller in a polling loop with fixed timeouts instead). One sequence runs per drive: a new command,
-move or set-point replaces the one running, which is answered "replaced"; shutdown answers
-every one "shutting down".
+a transition takes as long as the drive needs and no longer (python canopen's
+``BaseNode402`` blocks its caller in a polling loop with fixed timeouts instead). One sequence
+runs per drive: a new command, move or set-point replaces the one running, which is answered
+"replaced"; shutdown answers every one "shutting down".
 """
 
 import asyncio

@@ -1,0 +1,304 @@
+"""The helper processes of ``bench_drives.py``: simulated drives, a bare receiver, a bare relay.
+
+As a process (``python bench_drive_host.py MODE ...``) each writes ``@@ {"ready": ...}`` once
+up and then answers commands (one JSON object a line) on standard input until ``stop``:
+
+* ``drives``: simulated CiA 402 drives (``DurandDrive``, the PDOs of
+  ``default_drive_pdos(--transmission-type)``) on one udp_multicast bus, for the gateway or
+  for python canopen's ``BaseNode402``;
+* ``reader``: a bare python-can receiver that takes every frame of the bus and counts it by
+  kind, nothing else: the floor of receiving what the gateway receives.
+  ``{"op": "stats"}`` answers the counts so far;
+* ``relay``: a bare rclpy node that takes a ``std_msgs/Float64`` (subscribed best effort, as
+  the gateway subscribes targets) and sends it as one CAN frame, laid out as a drive's RPDO 2
+  (target velocity INTEGER32, target torque INTEGER16) on COB-ID 0x37F, which no simulated
+  drive takes: the floor of the gateway's target path, between the same kinds of process.
+"""
+
+import argparse
+import json
+import queue
+import struct
+import sys
+import threading
+import time
+from typing import Dict
+
+from bench_util import exit_on_sigterm, import_retrying, progress, receive, send
+import can
+
+RELAY_COB_ID = 0x37F  # RPDO 2 of node 127: no simulated drive takes it
+SYNC_COB_ID = 0x080
+
+
+def frame_kind(cob_id: int) -> str:
+    """Return what a frame is, by its COB-ID (CiA 301 predefined connection set)."""
+    if cob_id == SYNC_COB_ID:
+        return 'sync'
+    function = cob_id & 0x780
+    if function in (0x180, 0x280, 0x380, 0x480):
+        return 'tpdo'
+    if function in (0x200, 0x300, 0x400, 0x500):
+        return 'rpdo'
+    if function == 0x700:
+        return 'heartbeat'
+    if function in (0x580, 0x600):
+        return 'sdo'
+    if function == 0x080:
+        return 'emcy'
+    return 'other'
+
+
+def _bus(args, bus_options: Dict):
+    return can.Bus(interface='udp_multicast', channel=args.channel, **bus_options)
+
+
+def _serve(extra=None) -> None:
+    """Answer commands until ``stop``: ``stats`` with ``extra()``, anything else with ok."""
+    send({'ready': True})
+    while True:
+        command = receive()
+        if command.get('op') == 'stop':
+            return
+        answer = {'ok': True, 'time': time.monotonic()}
+        if extra is not None:
+            answer.update(extra())
+        send(answer)
+
+
+class SharedSocket:
+    """One udp_multicast socket for every simulated drive of this process.
+
+    Each simulated drive opens a bus of its own, and on udp_multicast every socket receives
+    (and unpacks) every frame: 8 drives cost 8 times the receiving, and on a busy machine
+    they missed SYNCs and SDO requests. Here one socket receives and hands each drive, on a
+    :class:`SharedUdpBus`, only the frames a drive takes (those a master sends it).
+    """
+
+    def __init__(self, channel: str, bus_options: Dict, node_ids):
+        self._bus = can.Bus(interface='udp_multicast', channel=channel, **bus_options)
+        self._node_ids = set(node_ids)
+        self._send_lock = threading.Lock()
+        self._members: Dict[int, 'SharedUdpBus'] = {}
+        self._running = True
+        self._thread = threading.Thread(target=self._receive, daemon=True)
+        self._thread.start()
+
+    def join(self, member: 'SharedUdpBus') -> None:
+        """Hand ``member`` the frames for its node from now on."""
+        self._members[member.node_id] = member
+
+    def leave(self, member: 'SharedUdpBus') -> None:
+        """Stop handing ``member`` frames."""
+        self._members.pop(member.node_id, None)
+
+    def send(self, message: can.Message) -> None:
+        """Send a drive's frame."""
+        with self._send_lock:
+            self._bus.send(message)
+
+    def close(self) -> None:
+        """Stop receiving and close the socket."""
+        self._running = False
+        self._thread.join()
+        self._bus.shutdown()
+
+    def _receive(self) -> None:
+        while self._running:
+            message = self._bus.recv(0.05)
+            if message is None:
+                continue
+            cob_id = message.arbitration_id
+            if cob_id in (0x000, SYNC_COB_ID, 0x7E5):  # NMT, SYNC, LSS: every drive's
+                members = list(self._members.values())
+            elif 0x700 < cob_id < 0x780 and cob_id - 0x700 not in self._node_ids:
+                members = list(self._members.values())  # a master's heartbeat
+            elif (cob_id & 0x780) in (0x200, 0x300, 0x400, 0x500, 0x600):
+                member = self._members.get(cob_id & 0x7F)  # its RPDOs and SDO requests
+                members = [member] if member is not None else []
+            else:
+                continue  # what the drives send (udp_multicast hands them back)
+            for member in members:
+                member.queue.put(message)
+
+
+SHARED_SOCKETS: Dict[str, SharedSocket] = {}
+SHARED_INTERFACE = 'bench_shared_udp'
+
+
+class SharedUdpBus(can.BusABC):
+    """A simulated drive's bus on the process's :class:`SharedSocket` ``channel``."""
+
+    def __init__(self, channel: str, node_id: int, **kwargs):
+        self.node_id = node_id
+        self.queue: 'queue.SimpleQueue[can.Message]' = queue.SimpleQueue()
+        self._socket = SHARED_SOCKETS[channel]
+        super().__init__(channel=channel, **kwargs)
+        self.channel_info = f'shared udp_multicast {channel}, node {node_id}'
+        self._socket.join(self)
+
+    def _recv_internal(self, timeout):
+        try:
+            return self.queue.get(timeout=timeout), False
+        except queue.Empty:
+            return None, False
+
+    def send(self, msg: can.Message, timeout=None) -> None:
+        """Send ``msg`` on the shared socket."""
+        self._socket.send(msg)
+
+    def shutdown(self) -> None:
+        """Leave the shared socket."""
+        self._socket.leave(self)
+        super().shutdown()
+
+
+def run_drives(args, bus_options: Dict) -> None:
+    """Host simulated drives ``--nodes`` until told to stop (``--shared-socket``: on one)."""
+    drive_module, pdo_module = import_retrying('cbcan_ros.simulation.durand_drive',
+                                               'cbcan_ros.simulation.durand_drive_pdos')
+    pdos = pdo_module.default_drive_pdos(args.transmission_type)
+    shared = None
+    if args.shared_socket:
+        # python-can finds a bus class by its interface name in BACKENDS (the entry point
+        # of interface plugins); ignore_config skips its check of the name against the list
+        # made at import.
+        can.interfaces.BACKENDS[SHARED_INTERFACE] = (__name__, 'SharedUdpBus')
+        shared = SHARED_SOCKETS[args.channel] = SharedSocket(args.channel, bus_options,
+                                                             args.nodes)
+        drives = [drive_module.DurandDrive(
+            node_id, interface=SHARED_INTERFACE, channel=args.channel,
+            bus_options={'node_id': node_id, 'ignore_config': True}, pdos=pdos)
+            for node_id in args.nodes]
+    else:
+        drives = [drive_module.DurandDrive(node_id, interface='udp_multicast',
+                                           channel=args.channel, bus_options=bus_options,
+                                           pdos=pdos)
+                  for node_id in args.nodes]
+    for drive in drives:
+        drive.start()
+    try:
+        _serve(lambda: {'states': {drive.node_id: drive.drive_state for drive in drives}})
+    finally:
+        for drive in drives:
+            drive.stop()
+        if shared is not None:
+            shared.close()
+
+
+def run_reader(args, bus_options: Dict) -> None:
+    """Receive and count every frame, by kind: the floor of receiving them.
+
+    With ``--record``, frames of those COB-IDs are also kept with the time they reached the
+    socket (the kernel's receive timestamp, wall clock: not when this process got round to
+    them) and handed over, and forgotten, on ``{"op": "stats"}``.
+    """
+    bus = _bus(args, bus_options)
+    counts = dict.fromkeys(('sync', 'tpdo', 'rpdo', 'sdo', 'heartbeat', 'emcy', 'other'), 0)
+    recorded = []
+    lock = threading.Lock()
+    done = threading.Event()
+
+    def count() -> None:
+        while not done.is_set():
+            message = bus.recv(0.5)
+            if message is not None:
+                kind = frame_kind(message.arbitration_id)
+                with lock:
+                    counts[kind] += 1
+                    if message.arbitration_id in args.record:
+                        recorded.append((message.timestamp, message.arbitration_id,
+                                         bytes(message.data).hex()))
+
+    def stats() -> dict:
+        with lock:
+            frames = list(recorded)
+            recorded.clear()
+            return {'counts': dict(counts), 'frames': frames}
+
+    thread = threading.Thread(target=count, daemon=True)
+    thread.start()
+    try:
+        _serve(stats)
+    finally:
+        done.set()
+        thread.join()
+        bus.shutdown()
+
+
+def run_relay(args, bus_options: Dict) -> None:
+    """Send every Float64 of ``--topic`` as one frame on the bus, from the subscription."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.experimental import EventsExecutor
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float64
+
+    bus = _bus(args, bus_options)
+    rclpy.init()
+    node = rclpy.create_node('bench_relay')
+    best_effort = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                             reliability=ReliabilityPolicy.BEST_EFFORT)
+
+    def relay(message: Float64) -> None:
+        data = struct.pack('<ih', round(message.data), 0)
+        bus.send(can.Message(arbitration_id=RELAY_COB_ID, data=data, is_extended_id=False))
+
+    node.create_subscription(Float64, args.topic, relay, best_effort)
+    executor = EventsExecutor()  # as the gateway's node spins
+    executor.add_node(node)
+    spinning = threading.Event()
+    spinning.set()
+
+    def spin() -> None:
+        # spin_once in a loop: EventsExecutor.spin() on a thread of its own took a core here
+        # and ran no callback.
+        while spinning.is_set():
+            executor.spin_once(timeout_sec=0.1)
+
+    spinner = threading.Thread(target=spin, daemon=True)
+    spinner.start()
+    try:
+        _serve()
+    except ExternalShutdownException:
+        pass
+    finally:
+        spinning.clear()
+        spinner.join()
+        executor.shutdown(timeout_sec=2.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+        bus.shutdown()
+
+
+MODES = {'drives': run_drives, 'reader': run_reader, 'relay': run_relay}
+
+
+def main(argv=None) -> int:
+    """Run one of the helper processes until told to stop, stdin closes or a signal arrives."""
+    parser = argparse.ArgumentParser(description=__doc__.split('\n', 1)[0])
+    parser.add_argument('mode', choices=MODES)
+    parser.add_argument('--channel', required=True, help='udp_multicast group')
+    parser.add_argument('--bus-options', default='{}', help='JSON, e.g. {"port": 30001}')
+    parser.add_argument('--nodes', type=lambda text: [int(n) for n in text.split(',')],
+                        default=[1], help='node ids of the drives (drives mode), e.g. 1,2,3')
+    parser.add_argument('--transmission-type', type=int, default=0,
+                        help="0: the drives' default PDOs (asynchronous); 1: every SYNC")
+    parser.add_argument('--shared-socket', action='store_true',
+                        help='drives mode: one udp_multicast socket for all the drives')
+    parser.add_argument('--record', type=lambda text: {int(i, 0) for i in text.split(',')},
+                        default=set(), help='reader mode: COB-IDs whose frames are kept, '
+                                            'e.g. 0x181,0x201')
+    parser.add_argument('--topic', default='/bench_relay/target', help='relay mode')
+    args = parser.parse_args(argv)
+    exit_on_sigterm()
+    try:
+        MODES[args.mode](args, json.loads(args.bus_options))
+    except (KeyboardInterrupt, SystemExit):
+        pass
+    progress(f'{args.mode} process done')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
