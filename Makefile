@@ -44,13 +44,16 @@ $(VENV_STAMP): $(ROOT)/requirements.txt $(ROOT)/requirements-lock.txt
 
 build: $(BUILD_STAMP)
 
-$(BUILD_STAMP): $(VENV_STAMP) $(BUILD_INPUTS)
-	cd $(ROOT) && env _ROS_WHEELS_BOOTSTRAP_COMPLETE=1 \
+# colcon in the workspace it is run in, with the PyPI-wheel ROS of .venv/.
+COLCON_BUILD = env _ROS_WHEELS_BOOTSTRAP_COMPLETE=1 \
 	  PATH="$(VENV)/bin:$$PATH" \
 	  AMENT_PREFIX_PATH="$(VENV)" CMAKE_PREFIX_PATH="$(VENV)" \
 	  LD_LIBRARY_PATH="$(VENV)/lib$${LD_LIBRARY_PATH:+:$$LD_LIBRARY_PATH}" \
 	  $(VENV)/bin/colcon build --event-handlers console_direct- console_cohesion+ \
 	    --cmake-args -DPython3_EXECUTABLE=$(PY) -DCMAKE_BUILD_TYPE=RelWithDebInfo
+
+$(BUILD_STAMP): $(VENV_STAMP) $(BUILD_INPUTS)
+	cd $(ROOT) && $(COLCON_BUILD)
 	touch $@
 
 # can_msgs (ros_canopen's can_msgs/msg/Frame, for the raw CAN topics) where no ROS install
@@ -64,12 +67,7 @@ build: $(CAN_MSGS_STAMP)
 clean: clean-can-msgs
 
 $(CAN_MSGS_STAMP): $(VENV_STAMP) $(shell find $(CAN_MSGS_WS)/src -print 2>/dev/null)
-	cd $(CAN_MSGS_WS) && env _ROS_WHEELS_BOOTSTRAP_COMPLETE=1 \
-	  PATH="$(VENV)/bin:$$PATH" \
-	  AMENT_PREFIX_PATH="$(VENV)" CMAKE_PREFIX_PATH="$(VENV)" \
-	  LD_LIBRARY_PATH="$(VENV)/lib$${LD_LIBRARY_PATH:+:$$LD_LIBRARY_PATH}" \
-	  $(VENV)/bin/colcon build --event-handlers console_direct- console_cohesion+ \
-	    --cmake-args -DPython3_EXECUTABLE=$(PY) -DCMAKE_BUILD_TYPE=RelWithDebInfo
+	cd $(CAN_MSGS_WS) && $(COLCON_BUILD)
 	touch $@
 
 .PHONY: clean-can-msgs

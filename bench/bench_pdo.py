@@ -32,7 +32,14 @@ import time
 from typing import Dict, List
 import uuid
 
-from bench_util import logs_to, OUTPUT, percentile, proc_cpu_seconds, progress
+from bench_util import (
+    logs_to,
+    OUTPUT,
+    percentile,
+    proc_cpu_seconds,
+    progress,
+    write_report,
+)
 
 START_TIMEOUT = 60.0
 PDOS = None  # set in main() once the package is importable
@@ -289,12 +296,7 @@ def report(rows: Dict[str, Dict], output: str) -> str:
         verdict = '' if value is None else ('yes' if met(value) else '**no**')
         lines.append(f'| {title} | {target} | {shown} | {verdict} |')
     table = '\n'.join(lines)
-    os.makedirs(output, exist_ok=True)
-    with open(os.path.join(output, 'pdo.md'), 'w') as file:
-        file.write(f'# PDO and SYNC benchmark\n\n{table}\n\nLoad after: '
-                   f'{" ".join(f"{v:.2f}" for v in os.getloadavg())}\n')
-    with open(os.path.join(output, 'pdo.json'), 'w') as file:
-        json.dump(rows, file, indent=1)
+    write_report(output, 'pdo', 'PDO and SYNC benchmark', table, rows)
     return table
 
 

@@ -39,6 +39,7 @@ from bench_util import (
     progress,
     receive,
     send,
+    write_report,
 )
 
 START_TIMEOUT = 60.0
@@ -338,12 +339,7 @@ def report(rows: Dict[str, Dict], output: str) -> str:
         lines.append(f'| {title} | {target} | {_shown(row)} | {verdict} | '
                      f'{_shown(rows.get("bare_" + key))} |')
     table = '\n'.join(lines)
-    os.makedirs(output, exist_ok=True)
-    with open(os.path.join(output, 'raw.md'), 'w') as file:
-        file.write(f'# Raw CAN frame benchmark\n\n{table}\n\nLoad after: '
-                   f'{" ".join(f"{v:.2f}" for v in os.getloadavg())}\n')
-    with open(os.path.join(output, 'raw.json'), 'w') as file:
-        json.dump(rows, file, indent=1)
+    write_report(output, 'raw', 'Raw CAN frame benchmark', table, rows)
     return table
 
 

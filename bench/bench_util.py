@@ -186,3 +186,13 @@ def proc_udp_drops(pid: int, port: int) -> Optional[int]:
         return total
     except (OSError, ValueError, IndexError):
         return None
+
+
+def write_report(output: str, name: str, title: str, table: str, rows: Dict) -> None:
+    """Write ``<name>.md`` (``title``, ``table`` and the load after) and ``<name>.json``."""
+    os.makedirs(output, exist_ok=True)
+    with open(os.path.join(output, f'{name}.md'), 'w') as file:
+        file.write(f'# {title}\n\n{table}\n\nLoad after: '
+                   f'{" ".join(f"{v:.2f}" for v in os.getloadavg())}\n')
+    with open(os.path.join(output, f'{name}.json'), 'w') as file:
+        json.dump(rows, file, indent=1)
