@@ -148,6 +148,34 @@ def assert_in_bus_order_each_once(published: list, sent: list) -> None:
     assert places == sorted(set(places)), 'frames published out of order or twice'
 
 
+
+class Stream:
+    """Another program's extended frames, ``burst`` at a time, ``pause`` between, until stopped."""
+
+    def __init__(self, bus, id_mask: int, burst: int, pause: float):
+        self.frames = []  # their keys, in the order sent
+        self._sending = threading.Event()
+        self._sending.set()
+        self._thread = threading.Thread(target=self._send, args=(bus, id_mask, burst, pause),
+                                        daemon=True)
+        self._thread.start()
+
+    def _send(self, bus, id_mask: int, burst: int, pause: float) -> None:
+        number = 0
+        while self._sending.is_set():
+            frame = raw_message(EXTENDED | number & id_mask, number.to_bytes(4, 'little'),
+                                extended=True)
+            bus.send(frame)
+            self.frames.append(key(frame))
+            number += 1
+            if number % burst == 0:
+                time.sleep(pause)
+
+    def stop(self) -> None:
+        """Stop sending (again is harmless); return once the last frame went out."""
+        self._sending.clear()
+        self._thread.join()
+
 def test_frames_another_program_sends_are_published_once_in_bus_order(make_gateway):
     gateway = make_gateway(raw__filters=RAW_FILTERS)
     recorder = FrameRecorder(gateway.client_node, '/cbcan/from_can_bus')
@@ -215,24 +243,9 @@ def test_canopen_goes_on_undisturbed_while_raw_frames_flow_both_ways(make_gatewa
     subscribed(gateway.node, '/cbcan/from_can_bus')
     gateway.wait_for_states({5: 'PRE_OPERATIONAL'})
     other = gateway.raw_bus()
-    streaming = threading.Event()
-    streaming.set()
-    streamed = []
-
-    def stream() -> None:
-        # Another program's frames, about 500 a second, for as long as CANopen is exercised.
-        number = 0
-        while streaming.is_set():
-            frame = raw_message(EXTENDED | number & 0xFFFF, number.to_bytes(4, 'little'),
-                                extended=True)
-            other.send(frame)
-            streamed.append(key(frame))
-            number += 1
-            if number % 5 == 0:
-                time.sleep(0.01)
-
-    streamer = threading.Thread(target=stream, daemon=True)
-    streamer.start()
+    # Another program's frames, about 500 a second, for as long as CANopen is exercised.
+    stream = Stream(other, 0xFFFF, burst=5, pause=0.01)
+    streamed = stream.frames
     try:
         wait_until(lambda: len(recorder.frames) > 20, PROMPT, 'streamed frames published')
         assert gateway.call('nmt_command', node_id=5, command=1).success
@@ -247,13 +260,12 @@ def test_canopen_goes_on_undisturbed_while_raw_frames_flow_both_ways(make_gatewa
             assert sent.success, sent.message
         wait_until(lambda: len(pdos) >= 3, PROMPT, "node 5's PDOs")
         gateway.wait_for_states({5: 'OPERATIONAL', 20: 'PRE_OPERATIONAL'})
-        streaming.clear()
-        streamer.join()
+        stream.stop()
         got = received_from(other, {0x7F0}, 20)
         wait_until(lambda: recorder.keys()[-1:] == streamed[-1:], PROMPT,
                    'the last streamed frame published')
     finally:
-        streaming.clear()
+        stream.stop()
         other.shutdown()
     assert newcomer.node_id == 20
     assert [frame.data[0] for frame in got] == list(range(20))
@@ -491,24 +503,9 @@ def test_the_installed_node_bridges_raw_frames_both_ways_while_canopen_goes_on(s
     # Another program: one bus to send, one recording every frame (its own echoed too).
     other = can.Bus(interface='udp_multicast', channel=group, port=port)
     seen = BusRecorder(group, port)
-    streaming = threading.Event()
-    streaming.set()
-    streamed = []
-
-    def stream() -> None:
-        # Its frames at about 500 a second, while CANopen and the ROS programs work.
-        number = 0
-        while streaming.is_set():
-            frame = raw_message(EXTENDED | number & 0x7FFF, number.to_bytes(4, 'little'),
-                                extended=True)
-            other.send(frame)
-            streamed.append(key(frame))
-            number += 1
-            if number % 10 == 0:
-                time.sleep(0.02)
-
-    streamer = threading.Thread(target=stream, daemon=True)
-    streamer.start()
+    # Its frames at about 500 a second, while CANopen and the ROS programs work.
+    stream = Stream(other, 0x7FFF, burst=10, pause=0.02)
+    streamed = stream.frames
     try:
         wait_until(lambda: len(recorder.frames) > 20, PROMPT, 'streamed frames published')
         for number in range(30):
@@ -519,14 +516,13 @@ def test_the_installed_node_bridges_raw_frames_both_ways_while_canopen_goes_on(s
                 can_frame(EXTENDED | 0xFFFF, bytes([number, 2]), extended=True)]),
                 'send_frames', node)
             assert sent.success and sent.sent == 2, sent.message
-        streaming.clear()
-        streamer.join()
+        stream.stop()
         marker = raw_message(0x7FE, b'\xEE')
         other.send(marker)
         recorder.wait_for([key(marker)], {0x7FE})
         wait_until(lambda: len(mine(seen)) == 60, PROMPT, "the gateway's 60 frames on the bus")
     finally:
-        streaming.clear()
+        stream.stop()
         other.shutdown()
         seen.close()
     assert [bytes(frame.data) for frame in mine(seen)] == [
