@@ -521,9 +521,10 @@ def test_a_silent_drive_is_unknown_refuses_targets_and_needs_a_fresh_enable(rig)
     assert 'UNKNOWN' in refused.message and 'nothing was sent' in refused.message
     assert refused.state == 'UNKNOWN'
     axis.recorder.mark()
-    # Uploads to a lost drive would be harmless; nothing may command it.
-    sent = [m for m in axis.recorder.messages(lost) if m.arbitration_id in RPDOS
-            or is_download(m)]
+    # Uploads to a lost drive would be harmless; nothing may command it but the quick stop
+    # the gateway sends in case it is alive and running (this one is gone).
+    sent = [m for m in axis.recorder.messages(lost) if (m.arbitration_id in RPDOS
+            or is_download(m)) and controlword_of(m) != QUICK_STOP]
     assert not sent, f'frames to the lost drive: {shown(sent)}'
 
     # It boots again (power back): SWITCH_ON_DISABLED, and targets refused until an enable.
@@ -540,6 +541,23 @@ def test_a_silent_drive_is_unknown_refuses_targets_and_needs_a_fresh_enable(rig)
     targets.stop()
     axis.stop_streams()
     axis.enable_moving()
+
+
+def test_a_drive_that_stops_heartbeating_while_running_is_quick_stopped(rig):
+    # Only its heartbeat stops (its producer time set to 0): the drive is alive, running, and
+    # deaf to nothing. The gateway, which no longer takes its targets, stops it, and a
+    # robot program's own quick_stop gets through too (by SDO: no statusword confirms it).
+    axis = rig('-p', 'drives.command_timeout:=0.0', '-p', 'heartbeat.timeout:=0.6')
+    targets = axis.enable_moving()
+    states_before = len(axis.states)
+    axis.drive.set_value(0x1017, 0, 0)
+    axis.wait_state('UNKNOWN', states_before)
+    targets.stop()
+    axis.drive_reaches(standing_still, 'the drive stopped after its heartbeat was lost')
+    stopped = axis.command('quick_stop')
+    assert stopped.success and 'not heard' in stopped.message, stopped.message
+    refused = axis.command('enable', CSV)
+    assert not refused.success and 'nothing was sent' in refused.message
 
 
 def test_a_drive_heard_again_without_a_boot_is_not_left_running(rig):

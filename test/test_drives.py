@@ -277,3 +277,31 @@ def test_nan_and_out_of_range_targets_are_refused_and_nothing_moves(rig):
         refused = drives.target(NODE, value)
         assert not refused.success and 'nothing was sent' in refused.message
     assert axis.drive.velocity == 0
+
+
+def test_cancelling_a_replaced_goal_leaves_the_new_goal_running(rig):
+    axis = rig()
+    axis.enable(PP)
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    old = wait_for_future(axis.mover.send_goal_async(
+        DriveMove.Goal(node_id=NODE, position=50.0, velocity=2.0)), WAIT)
+    new = wait_for_future(axis.mover.send_goal_async(
+        DriveMove.Goal(node_id=NODE, position=-0.2, velocity=50.0)), WAIT)
+    wait_for_future(old.cancel_goal_async(), WAIT)
+    assert 'replaced' in wait_for_future(old.get_result_async(), WAIT).result.message
+    done = wait_for_future(new.get_result_async(), WAIT).result
+    assert done.success, done.message
+    assert axis.drive.position == -200
+
+
+def test_a_goal_that_overflows_the_drive_units_is_refused_naming_it(rig):
+    axis = rig()
+    axis.enable(PP)
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    goal = wait_for_future(axis.mover.send_goal_async(
+        DriveMove.Goal(node_id=NODE, position=1.7e306, velocity=1.0)), WAIT)
+    result = wait_for_future(goal.get_result_async(), WAIT).result
+    assert not result.success
+    assert 'position' in result.message and 'nothing was sent' in result.message
+    assert len(result.message) < 300
+    assert axis.drive.velocity == 0

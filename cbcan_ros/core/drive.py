@@ -23,6 +23,7 @@ Safety lives here, below ROS:
 
 import asyncio
 from concurrent.futures import Future
+import contextlib
 from dataclasses import replace
 import logging
 import threading
@@ -144,16 +145,12 @@ class DriveService:
     def pause(self, reason: str) -> None:
         """End what runs, then stop every powered drive as at shutdown (a node deactivated).
 
-        The sequences are ended first, and waited for: one still running could send an
-        enable step after the stop.
+        The sequences are ended, and waited for, first: one could send an enable step after.
         """
         ended = self._runner.submit(self._commands.cancel_all(reason))
-        if ended is not None:
-            try:
+        if ended is not None:  # None: shutting down, the loop ended them
+            with contextlib.suppress(TimeoutError):  # stop them anyway
                 ended.result(safety.SHUTDOWN_WAIT)
-            except TimeoutError:
-                LOGGER.error('drive commands did not end within %.1f s of: %s',
-                             safety.SHUTDOWN_WAIT, reason)
         safety.stop_motion(self._drives.values(), self.settings, self._lock, reason)
 
     def command(self, node_id: int, command: str, mode: int = 0,
@@ -185,11 +182,11 @@ class DriveService:
             refused = problem and failed(self.status(node_id), f'{problem}; {checks.NOTHING_SENT}')
         if refused:
             return resolved(refused), lambda: None
-        drive = self._drives[node_id]
+        drive, token = self._drives[node_id], object()
         future = self._submit(drive, self._commands.move(drive, position, relative, velocity,
-                                                         on_feedback))
+                                                         on_feedback, token))
         return future, lambda: self._runner.call_soon(
-            lambda: self._commands.cancel(drive, 'cancelled', halt=True))
+            lambda: self._commands.cancel(drive, 'cancelled', halt=True, token=token))
 
     def target(self, node_id: int, value: float) -> DriveResult:
         """Send ``value`` as the target of the drive's present mode, in the drive's units.
@@ -315,6 +312,7 @@ class DriveService:
             for drive in self._drives.values():
                 if drive.heard and self._monitor.status(drive.node_id).state == NOT_DETECTED:
                     drive.heard = False
+                    drive.lost_powered = drive.status.state in cia402.POWERED
                     drive.halted_by = ''
                     drive.status = DriveStatus(drive.node_id,
                                                supported_modes=drive.status.supported_modes,
@@ -325,6 +323,9 @@ class DriveService:
                            'needs a fresh enable once it is heard again', drive.node_id)
             self._notify(drive.status)
             self._wake(drive)
+            if drive.lost_powered and not self._bus_down():  # it may be alive and running
+                self._runner.submit(safety.stop_unattended(
+                    drive, self._lock, 'stopped heartbeating while powered'))
 
     def _apply(self, drive: DriveRecord, values: Dict[int, int], stamp: float) -> None:
         """Take feedback values of ``drive``: update its status, wake what waits, tell."""
@@ -400,7 +401,7 @@ class DriveService:
         self.take(drive, {index: values[index] for index in (*FEEDBACK, cia402.ERROR_CODE)
                           if index in values})
         if self.status(drive.node_id).state == cia402.OPERATION_ENABLED:
-            await safety.stop_unattended(drive, self._lock)
+            await safety.stop_unattended(drive, self._lock, 'was OPERATION_ENABLED when heard')
         await safety.watch_the_gateway(self._sdo_batch, drive.node_id, self.settings)
 
     async def _read_error(self, drive: DriveRecord) -> None:
@@ -451,15 +452,20 @@ class DriveService:
         problem = checks.request_problem(command, mode, timeout)
         if problem:
             return self._refused(node_id, f'{problem}; {checks.NOTHING_SENT}')
-        refused = self._drive_refusal(node_id, enabled=command in checks.ENABLED_COMMANDS)
+        refused = self._drive_refusal(node_id, enabled=command in checks.ENABLED_COMMANDS,
+                                      stopping=command in checks.STOPPING_COMMANDS)
         if refused is not None:
             return refused
         status = self.status(node_id)
         problem = checks.command_problem(status, command, mode)
         return failed(status, f'{problem}; {checks.NOTHING_SENT}') if problem else None
 
-    def _drive_refusal(self, node_id: int, enabled: bool) -> Optional[DriveResult]:
-        """Return why drive ``node_id`` takes no request now, or None."""
+    def _drive_refusal(self, node_id: int, enabled: bool,
+                       stopping: bool = False) -> Optional[DriveResult]:
+        """Return why drive ``node_id`` takes no request now, or None.
+
+        ``stopping``: a command that stops the drive, sent even to one not heard.
+        """
         problem = check_node_id(node_id, '1..127', lowest=1)
         if not problem and node_id not in self._drives:
             problem = (f'node {node_id} is not a drive (parameter drives.nodes: '
@@ -473,7 +479,7 @@ class DriveService:
         if refusal:
             return failed(status, f'{refusal}; {checks.NOTHING_SENT}', abort_codes.LOCAL_CONTROL)
         problem = (SHUTTING_DOWN if closing else self._bus_down()
-                   or checks.state_problem(status, heard, enabled))
+                   or (None if stopping else checks.state_problem(status, heard, enabled)))
         return failed(status, f'{problem}; {checks.NOTHING_SENT}') if problem else None
 
     def _refused(self, node_id: int, message: str) -> DriveResult:

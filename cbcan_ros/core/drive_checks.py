@@ -16,6 +16,8 @@ COMMANDS = ('enable', 'disable', 'quick_stop', 'halt', 'resume', 'fault_reset', 
             'home')
 # Commands that act on a drive in OPERATION_ENABLED only.
 ENABLED_COMMANDS = frozenset({'halt', 'resume', 'home'})
+# Commands that stop a drive: sent even to one not heard (by SDO: it may be alive, running).
+STOPPING_COMMANDS = frozenset({'quick_stop', 'disable'})
 MODES = tuple(cia402.MODE_NAMES)
 NOTHING_SENT = 'nothing was sent'
 
@@ -80,6 +82,6 @@ def integer_problem(name: str, value: int, bits: int, unsigned: bool = False) ->
     else:
         lowest, highest = -(1 << bits - 1), (1 << bits - 1) - 1
     if not lowest <= value <= highest:
-        return (f"{name} {value} (drive units) does not fit the drive's {bits}-bit object: "
-                f'allowed {lowest}..{highest}')
+        return (f"{name} {quoted(value)} (drive units) does not fit the drive's {bits}-bit "
+                f'object: allowed {lowest}..{highest}')
     return None

@@ -40,6 +40,7 @@ class DriveCommands:
         self._service = service
         self._tasks: Dict[int, asyncio.Task] = {}
         self._reasons: Dict[asyncio.Task, str] = {}
+        self._tokens: Dict[asyncio.Task, object] = {}  # what names a move to its cancel
         self._halt_when_cancelled: set = set()
         self._set_points: Dict[int, int] = {}
         self._streams: set = set()  # the tasks streaming set-points
@@ -50,10 +51,13 @@ class DriveCommands:
         return await self._own(drive, lambda: sequence(drive, mode), timeout)
 
     async def move(self, drive, position: int, relative: bool, velocity: int,
-                   on_feedback: Optional[Callable]) -> object:
-        """Move in profile position to ``position``; return the DriveResult."""
+                   on_feedback: Optional[Callable], token: object) -> object:
+        """Move in profile position to ``position``; return the DriveResult.
+
+        ``token`` names this move to :meth:`cancel`, which then ends it only while it runs.
+        """
         return await self._own(drive, lambda: self._move(drive, position, relative, velocity,
-                                                         on_feedback), None)
+                                                         on_feedback), None, token)
 
     def set_point(self, drive, position: int) -> None:
         """Take ``position`` as the next PP set-point (on the loop); the latest one wins."""
@@ -64,10 +68,14 @@ class DriveCommands:
         self._streams.add(stream)
         stream.add_done_callback(self._streams.discard)
 
-    def cancel(self, drive, reason: str, halt: bool = False) -> None:
-        """End the sequence running on ``drive`` (on the loop), answered ``reason``."""
+    def cancel(self, drive, reason: str, halt: bool = False, token: object = None) -> None:
+        """End the sequence running on ``drive`` (on the loop), answered ``reason``.
+
+        With ``token``, only the sequence started with it: a move already replaced is done.
+        """
         task = self._tasks.get(drive.node_id)
-        if task is None or task.done():
+        if task is None or task.done() or (token is not None
+                                           and self._tokens.get(task) is not token):
             return
         self._reasons[task] = reason
         if halt:
@@ -82,13 +90,15 @@ class DriveCommands:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
 
-    async def _own(self, drive, sequence: Callable, timeout: Optional[float]):
+    async def _own(self, drive, sequence: Callable, timeout: Optional[float],
+                   token: object = None):
         task = asyncio.current_task()
         previous = self._tasks.get(drive.node_id)
         if previous is not None and not previous.done():
             self._reasons[previous] = 'replaced by a newer command, move or target'
             previous.cancel()
         self._tasks[drive.node_id] = task
+        self._tokens[task] = token
         service, node_id = self._service, drive.node_id
         try:
             if timeout:
@@ -111,6 +121,7 @@ class DriveCommands:
                 reason = await self._halt_after_cancel(drive, reason)
             return DriveResult(False, reason, service.status(node_id))
         finally:
+            self._tokens.pop(task, None)
             if self._tasks.get(node_id) is task:
                 del self._tasks[node_id]
 
@@ -206,6 +217,8 @@ class DriveCommands:
     async def _disable(self, drive, _mode: int) -> str:
         self._service.set_enabled(drive, False)
         self._service.set_halted(drive, '')
+        if not drive.heard or self._service.status(drive.node_id).state == cia402.UNKNOWN:
+            return await self._stop_unheard(drive, cia402.DISABLE_VOLTAGE)
         status = await self._reach(drive, cia402.SWITCH_ON_DISABLED,
                                    lambda s: s.state == cia402.SWITCH_ON_DISABLED or s.faulted,
                                    fault_ok=True)
@@ -214,12 +227,25 @@ class DriveCommands:
     async def _quick_stop(self, drive, _mode: int) -> str:
         self._service.set_enabled(drive, False)
         self._service.set_halted(drive, '')
+        if not drive.heard or self._service.status(drive.node_id).state == cia402.UNKNOWN:
+            return await self._stop_unheard(drive, cia402.QUICK_STOP)
         status = self._service.status(drive.node_id)
         if _stopped(status) or status.state not in cia402.POWERED:
             return f'node {drive.node_id} is {status.state}: nothing to stop'
         mark = await self._send(drive, {cia402.CONTROLWORD: cia402.QUICK_STOP})
         status = await self._after(drive, mark, _stopped, fault_ok=True)
         return f'node {drive.node_id} stopped: {status.state}'
+
+    async def _stop_unheard(self, drive, word: int) -> str:
+        """Send a stop to a drive not heard, by SDO: no statusword can confirm it."""
+        result = await asyncio.wrap_future(drive.objects.write_by_sdo(
+            {cia402.CONTROLWORD: word}, SEND_TIMEOUT))
+        if not result.success:
+            raise DriveFailed(f'node {drive.node_id} is not heard, and the controlword '
+                              f'0x{word:04X} was not taken: {result.message}',
+                              result.abort_code)
+        return (f'node {drive.node_id} is not heard: controlword 0x{word:04X} written by SDO '
+                f'(the drive confirmed the write; no statusword shows its state)')
 
     async def _halt(self, drive, _mode: int) -> str:
         self._service.set_halted(drive, 'command')

@@ -61,23 +61,24 @@ def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
                     f'; not taken by {", ".join(failed)}' if failed else '')
 
 
-async def stop_unattended(drive: DriveRecord, lock) -> None:
-    """Quick-stop a drive found OPERATION_ENABLED when heard: nothing of ours commands it.
+async def stop_unattended(drive: DriveRecord, lock, why: str) -> None:
+    """Quick-stop a drive nothing of ours commands any more, by SDO (applied at once).
 
-    Heard again without a boot (its heartbeat paused) it runs on at its last target, and its
-    targets are refused until a fresh enable; at the gateway's start it may be one a crashed
-    gateway left running. Stopped by SDO, which applies at once.
+    ``why``: 'found running' when heard (again without a boot, its heartbeat paused, it runs
+    on at its last target; or one a crashed gateway left running at the gateway's start), or
+    'lost' when its heartbeat stopped while it was powered (it may still be alive, running,
+    deaf only to its own heartbeat; if it is gone, the transfer times out).
     """
     with lock:
         drive.controlword = cia402.QUICK_STOP
     result = await asyncio.wrap_future(drive.objects.write_by_sdo(
         {cia402.CONTROLWORD: cia402.QUICK_STOP}, CONSUMER_TIMEOUT))
     if result.success:
-        LOGGER.warning('drive %d was OPERATION_ENABLED when heard, commanded by nobody here: '
-                       'quick stop sent; enable it to move it', drive.node_id)
+        LOGGER.warning('drive %d %s, commanded by nobody here: quick stop sent; enable it to '
+                       'move it', drive.node_id, why)
     else:
-        LOGGER.error('drive %d is OPERATION_ENABLED, commanded by nobody here, and could not '
-                     'be stopped: %s', drive.node_id, result.message)
+        LOGGER.error('drive %d %s, commanded by nobody here, and could not be stopped: %s',
+                     drive.node_id, why, result.message)
 
 
 def command_timed_out(drive: DriveRecord, settings: DriveSettings, lock) -> Optional[int]:

@@ -85,6 +85,7 @@ class DriveRecord:
     polled: float = 0.0  # time.monotonic() of the last SDO read of its feedback
     timeouts: int = 0
     emcy_code: int = 0  # the error code of the last EMCY
+    lost_powered: bool = False  # its heartbeat stopped while its power stage was on
     waiters: List[Callable[[], None]] = field(default_factory=list)
 
 

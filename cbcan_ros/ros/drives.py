@@ -252,17 +252,21 @@ class DriveTopics:
         if refusal:
             goal_handle.abort()
             return DriveMove.Result(success=False, message=refusal)
-        position = round(joint.to_device(cia402.PROFILE_POSITION, goal.position,
-                                         goal.relative))
-        velocity = round(abs(goal.velocity * joint.velocity_scale))
+        position = joint.to_device(cia402.PROFILE_POSITION, goal.position, goal.relative)
+        velocity = abs(goal.velocity * joint.velocity_scale)
+        if not (math.isfinite(position) and math.isfinite(velocity)):
+            goal_handle.abort()
+            return DriveMove.Result(success=False, message=(
+                f'position {goal.position} or velocity {goal.velocity} does not fit the '
+                f"drive's units (node_{joint.node_id} scales); nothing was sent"))
 
         def feedback(status: DriveStatus) -> None:
             goal_handle.publish_feedback(DriveMove.Feedback(
                 position=float(joint.position(status.position)),
                 velocity=float(joint.velocity(status.velocity))))
 
-        future, cancel = self._service.move(joint.node_id, position, goal.relative, velocity,
-                                            feedback)
+        future, cancel = self._service.move(joint.node_id, round(position), goal.relative,
+                                            round(velocity), feedback)
         key = bytes(goal_handle.goal_id.uuid)
         self._cancels[key] = cancel
         done = RclpyFuture()
