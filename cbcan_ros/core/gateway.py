@@ -28,6 +28,7 @@ from .lss_frames import is_all_waiting, probe_wait
 from .lss_master import LssMaster
 from .pdo import PdoService
 from .raw_frames import canopen_ids, echoes, RawFrames, RawSettings
+from .receive_buffer import deepen_receive_buffer
 from .request_queue import Deadlines, resolved
 from .sdo import Access, batch_refusal, check_node_id, one_each, refusal, SdoResult
 from .sdo_channel import SdoChannel, SdoStatistics
@@ -347,8 +348,9 @@ class Gateway:
         options = dict(self.config.bus_options)
         if self.config.bitrate:
             options['bitrate'] = self.config.bitrate
-        return can.Bus(interface=self.config.interface, channel=self.config.channel,
-                       **options)
+        bus = can.Bus(interface=self.config.interface, channel=self.config.channel, **options)
+        deepen_receive_buffer(bus)
+        return bus
 
     def _on_bus_change(self, status: BusStatus) -> None:
         if status.up:

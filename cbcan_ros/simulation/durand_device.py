@@ -37,6 +37,7 @@ from durand.services.nmt import StateEnum
 from durand.services.sdo.server import SDODomainAbort, TransferState
 
 from ..core import nmt
+from ..core.receive_buffer import deepen_receive_buffer
 from .durand_dictionary import (
     ABORT_LENGTH_TOO_HIGH,
     add_objects,
@@ -139,6 +140,7 @@ class DurandDevice:
             return
         scheduler = shared_scheduler()
         bus = can.Bus(**self._bus_options)
+        deepen_receive_buffer(bus)  # a device answers SDO requests sent in a flood, too
         network = BusNetwork(bus, scheduler.lock, self._on_remote_frame)
         with scheduler.lock:
             # Built muted: durand sends a boot-up while still constructing, before our
