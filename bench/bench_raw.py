@@ -15,6 +15,9 @@ it), so the cost of the gateway's way shows beside the floor of this machine.
    the frame carries its send time (CLOCK_MONOTONIC, one clock for every process of the
    machine), the subscriber in this process takes the difference; p50 and p99.
 3. The bridge process's CPU while those 2,000 frames/s flow, from /proc.
+4. CANopen beside a flood: SDO reads of a simulated device (durand, a process of its own)
+   through the node while four senders put 5,000 raw frames/s on ``udp_multicast`` and a
+   subscriber (a process of its own) takes every one the node publishes: reads that failed.
 """
 
 import argparse
@@ -242,10 +245,34 @@ def row_published(seconds: float, bare: bool) -> Dict:
             'received': received, 'rate': sent / seconds, 'taken': taken}
 
 
+def run_flood(group: str, port: int, seconds: float) -> int:
+    """Send 5,000 frames/s from four buses for ``seconds``; say how many (``--flood``)."""
+    import can
+    senders = [can.Bus(interface='udp_multicast', channel=group, port=port) for _ in RAW_IDS]
+    sent = _paced(senders, 5000, seconds)
+    for bus in senders:
+        bus.shutdown()
+    send({'sent': sent})
+    return 0
+
+
+def run_device(group: str, port: int) -> int:
+    """Run simulated device 2 on ``udp_multicast`` until SIGTERM (``--device``)."""
+    from cbcan_ros.simulation.durand_device import DurandDevice
+    device = DurandDevice(2, interface='udp_multicast', channel=group,
+                          bus_options={'port': port})
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    device.start()
+    stop.wait()
+    device.stop()
+    return 0
+
+
 class Bridge:
     """The installed cbcan_node, or a bare bridge, in its own process on udp_multicast."""
 
-    def __init__(self, bare: bool, log_path: str):
+    def __init__(self, bare: bool, log_path: str, parameters=()):
         import can
         self.group = f'239.{random.randint(1, 254)}.{random.randint(0, 255)}.' \
                      f'{random.randint(1, 254)}'
@@ -263,7 +290,7 @@ class Bridge:
                 raise SystemExit('cbcan_node is not on PATH (run through make bench)')
             command = [executable, '--ros-args', '-r', f'__ns:={namespace}',
                        '-p', 'can.interface:=udp_multicast', '-p', f'can.channel:={self.group}',
-                       '-p', f'raw.filters:={FILTERS}']
+                       '-p', f'raw.filters:={FILTERS}', *parameters]
         self.process = subprocess.Popen(
             command, stdout=self._log, stderr=subprocess.STDOUT,
             env={**os.environ, 'CAN_CONFIG': json.dumps({'port': self.port})})
@@ -305,6 +332,52 @@ def rows_in_own_process(seconds: float, bare: bool, output: str) -> Dict[str, Di
     return rows
 
 
+def row_canopen_under_flood(seconds: float, output: str) -> Dict:
+    """Row 4: SDO reads through the node while 5,000 raw frames/s are published."""
+    from rclpy.executors import SingleThreadedExecutor
+    import rclpy.node
+
+    from cbcan_ros.srv import SdoRead
+    bridge = Bridge(False, os.path.join(output, 'raw_flood_node.log'),
+                    ('-p', 'nodes:=[2]', '-p', 'sdo.timeout:=0.5'))
+    device = subprocess.Popen([sys.executable, os.path.abspath(__file__), '--device',
+                               bridge.group, str(bridge.port)])
+    counter = Counter(bridge.topic)
+    node = rclpy.node.Node(f'bench_flood_{uuid.uuid4().hex[:8]}')
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    client = node.create_client(SdoRead, bridge.topic.replace('from_can_bus', 'sdo_read'))
+
+    def read() -> bool:
+        future = client.call_async(SdoRead.Request(node_id=2, index=0x1000))
+        executor.spin_until_future_complete(future, timeout_sec=5.0)
+        return future.done() and future.result().success
+
+    try:
+        counter.message()  # matched
+        client.wait_for_service(timeout_sec=START_TIMEOUT)
+        deadline = time.monotonic() + START_TIMEOUT
+        while not read() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        # The senders in a process of their own: here they would wait for this one's reads.
+        flood = subprocess.Popen(
+            [sys.executable, os.path.abspath(__file__), '--flood', bridge.group,
+             str(bridge.port), str(seconds)], stdout=subprocess.PIPE, text=True)
+        reads = failed = 0
+        while flood.poll() is None:
+            reads += 1
+            failed += not read()
+        sent = json.loads(flood.stdout.read().split(MARK)[-1])['sent']
+        received = counter.received(sent)
+    finally:
+        device.terminate()
+        device.wait(10)
+        node.destroy_node()
+        bridge.close()
+    return {'value': failed, 'unit': 'reads failed', 'reads': reads, 'sent': sent,
+            'received': received}
+
+
 # (row, title, target, met(gateway's value, bare bridge's value or None))
 TARGETS = (
     ('published', 'raw frames published, 4 senders, 5,000 frames/s, virtual',
@@ -315,6 +388,8 @@ TARGETS = (
     # beside it): the target is what that may cost.
     ('cpu', "bridge process's CPU, 2,000 raw frames/s (udp)", '<= 1.5 x the bare bridge',
      lambda v, bare: bare is not None and v <= 1.5 * bare),
+    ('flood', 'SDO reads during a 5,000 frames/s published raw flood (udp)', 'none fails',
+     lambda v, _bare: v == 0),
 )
 
 
@@ -323,6 +398,9 @@ def _shown(row: Optional[Dict]) -> str:
     if value is None:
         return 'not measured'
     extra = f' (p50 {row["p50"]:.3g} ms)' if row.get('p50') is not None else ''
+    if row.get('reads') is not None:
+        extra = (f' of {row["reads"]} ({row["sent"]:,} raw frames sent, '
+                 f'{row["received"]:,} received by the subscriber)')
     if row.get('rate') is not None:
         extra = f' of {row["sent"]} ({row["rate"]:,.0f} frames/s sent)'
     return f'{value:.3g} {row.get("unit", "")}{extra}'
@@ -354,7 +432,13 @@ def main(argv=None) -> int:
     parser.add_argument('--bare-bridge', nargs=3, metavar=('GROUP', 'PORT', 'NAMESPACE'),
                         help=argparse.SUPPRESS)
     parser.add_argument('--count-frames', metavar='TOPIC', help=argparse.SUPPRESS)
+    parser.add_argument('--flood', nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument('--device', nargs=2, metavar=('GROUP', 'PORT'), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.flood:
+        return run_flood(args.flood[0], int(args.flood[1]), float(args.flood[2]))
+    if args.device:
+        return run_device(args.device[0], int(args.device[1]))
     if args.count_frames:
         return run_counter(args.count_frames)
     if args.bare_bridge:
@@ -377,6 +461,8 @@ def main(argv=None) -> int:
             progress(f'raw: {who} in its own process, 2,000 frames/s')
             rows.update({f'{prefix}{key}': row for key, row in
                          rows_in_own_process(seconds, bare, args.output).items()})
+        progress('raw: SDO reads through the gateway during a 5,000 frames/s flood')
+        rows['flood'] = row_canopen_under_flood(2 * seconds, args.output)
     except KeyboardInterrupt:
         progress('interrupted')
     finally:
