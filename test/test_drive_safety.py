@@ -31,6 +31,7 @@ from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.ros.node import SHUTDOWN_LIMIT
 from cbcan_ros.simulation.durand_drive import DurandDrive
 from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.simulation.durand_scheduler import shared_scheduler
 from cbcan_ros.srv import DriveCommand, NmtCommand
 
 from conftest import wait_until
@@ -501,9 +502,19 @@ def test_the_drive_watches_the_gateway_and_stops_by_itself_when_it_is_killed(rig
     wait_until(lambda: axis.drive.value(CONSUMER_HEARTBEAT, 1) == entry, ANSWER,
                'the drive holding 0x1016:1 again')
     axis.enable_moving()
+    killed = axis.recorder.mark()
     axis.node.process.send_signal(signal.SIGKILL)  # no shutdown code runs
     axis.node.process.wait(ANSWER)
-    axis.drive_reaches(standing_still, 'the drive stopped by itself')
+    try:
+        axis.drive_reaches(standing_still, 'the drive stopped by itself')
+    except AssertionError as error:
+        # What the drive's consumer saw: heartbeats of the gateway's id still on the bus
+        # (someone else's), or none and no consumer timer running.
+        heard = [message for message in axis.recorder.messages(killed)
+                 if message.arbitration_id == 0x700 + OWN_ID]
+        raise AssertionError(f'{error}; heartbeats of node {OWN_ID} after the kill: '
+                             f'{len(heard)}; durand timers pending: '
+                             f'{shared_scheduler().pending()}') from None
 
 
 # 4. The drive's heartbeat lost.
