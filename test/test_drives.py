@@ -7,6 +7,7 @@ action. What the drive did is read from the drive itself; conditions are waited 
 generous ceilings, never proved by sleeping.
 """
 
+import logging
 import math
 import threading
 
@@ -305,3 +306,28 @@ def test_a_goal_that_overflows_the_drive_units_is_refused_naming_it(rig):
     assert 'position' in result.message and 'nothing was sent' in result.message
     assert len(result.message) < 300
     assert axis.drive.velocity == 0
+
+
+def test_a_refused_target_stream_is_logged_once_per_incident(rig, caplog):
+    caplog.set_level(logging.WARNING, logger='cbcan_ros.ros.drives')
+    axis = rig()
+
+    def refusals() -> int:
+        return sum('call drive_command enable first' in record.getMessage()
+                   for record in caplog.records)
+
+    def moving_at(velocity: float) -> None:
+        # Targets are taken in order: once this one moves the drive, those before are done.
+        axis.target.publish(Float64(data=velocity))
+        wait_until(lambda: axis.drive.velocity == velocity * SCALE, WAIT, f'velocity {velocity}')
+
+    axis.enable(CSV)
+    moving_at(0.25)
+    for incident in (1, 2):
+        assert axis.command('disable').success
+        for _ in range(5):
+            axis.target.publish(Float64(data=0.5))  # refused: the drive is disabled
+        wait_until(lambda count=incident: refusals() >= count, WAIT, f'refusal {incident} logged')
+        axis.enable(CSV)
+        moving_at(0.25 * (incident + 1))
+        assert refusals() == incident, 'a stream of refused targets logged more than once'

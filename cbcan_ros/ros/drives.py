@@ -76,7 +76,7 @@ class DriveTopics:
         self._joints = joints
         self._by_name = {joint.name: joint for joint in joints.values()}
         self._refusal = refusal
-        self._logged: set = set()
+        self._logged: Dict[Optional[int], set] = {}  # kinds of refusal logged, by node
         self._cancels: Dict[bytes, Callable[[], None]] = {}
         self._states = {node_id: node.create_publisher(
             DriveState, f'~/node_{node_id}/drive_state', STATE_QOS) for node_id in joints}
@@ -204,30 +204,39 @@ class DriveTopics:
             if field is None or position >= len(values):
                 self._log_refusal(f'joint_commands: joint {name!r} (node {joint.node_id}) is '
                                   f'in {cia402.mode_name(mode)}, which takes '
-                                  f'{field or "no target"}, and the message has none for it')
+                                  f'{field or "no target"}, and the message has none for it',
+                                  joint.node_id)
                 continue
             self._send_target(joint, values[position], 'joint_commands')
 
     def _send_target(self, joint: Joint, value: float, topic: str) -> None:
         refusal = self._refusal()
         if refusal:
-            self._log_refusal(f'{topic}: {refusal}')
+            self._log_refusal(f'{topic}: {refusal}', joint.node_id)
             return
         if not math.isfinite(value):
             self._log_refusal(f'{topic}: target {value} for node {joint.node_id} is not a '
-                              f'finite number; nothing was sent')
+                              f'finite number; nothing was sent', joint.node_id)
             return
         mode = self._service.status(joint.node_id).mode
         result = self._service.target(joint.node_id, joint.to_device(mode, value))
         if not result.success:
-            self._log_refusal(f'{topic}: {result.message}')
+            self._log_refusal(f'{topic}: {result.message}', joint.node_id)
+        else:
+            self._logged.pop(joint.node_id, None)  # the incident is over: log the next one
 
-    def _log_refusal(self, problem: str) -> None:
-        """Log a refused target once per kind (numbers aside): a stream is not a log flood."""
+    def _log_refusal(self, problem: str, node_id: Optional[int] = None) -> None:
+        """Log a refused target once per kind (numbers aside) and incident.
+
+        A stream of refused targets is one line, not a log flood; once the drive ``node_id``
+        takes a target again, its next refusal is a new incident and logged again.
+        """
         kind = re.sub(r'[-\d.e+]+', '#', problem)[:100]
-        if kind not in self._logged:
-            self._logged.add(kind)
-            LOGGER.warning('%s (later ones like it are not logged)', problem)
+        logged = self._logged.setdefault(node_id, set())
+        if kind not in logged:
+            logged.add(kind)
+            until = f' until node {node_id} takes a target again' if node_id else ''
+            LOGGER.warning('%s (later ones like it are not logged%s)', problem, until)
 
     # The move action.
 
