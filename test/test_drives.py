@@ -20,7 +20,7 @@ from cbcan_ros.action import DriveMove
 from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.simulation.durand_drive import DurandDrive
-from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.simulation.durand_drive_pdos import default_drive_pdos
 
 from conftest import Harness, new_channel, wait_for_future, wait_until
 
@@ -31,12 +31,7 @@ PP, PV, HOMING, CSP, CSV, CST = 1, 3, 6, 8, 9, 10
 WAIT = 15.0
 LOCAL_CONTROL = 0x08000021
 
-PDOS = (
-    PdoConfig('tpdo', 1, ((0x6041, 0), (0x6061, 0), (0x6077, 0)), 255, 20),
-    PdoConfig('tpdo', 2, ((0x6064, 0), (0x606C, 0)), 255, 10),
-    PdoConfig('rpdo', 1, ((0x6040, 0), (0x607A, 0), (0x6060, 0)), 255),
-    PdoConfig('rpdo', 2, ((0x60FF, 0), (0x6071, 0)), 255),
-)
+PDOS = default_drive_pdos()  # the simulated drive's own, as make run has them
 
 
 class Rig:
@@ -246,7 +241,9 @@ def test_cancelling_a_move_halts_the_drive_and_answers_where_it_stopped(rig):
     goal = wait_for_future(axis.mover.send_goal_async(
         DriveMove.Goal(node_id=NODE, position=500.0, velocity=2.0),
         feedback_callback=feedback.append), WAIT)
-    wait_until(lambda: feedback, WAIT, 'move feedback')
+    # Cancelled once under way: a cancel before the first step would halt it at 0.
+    wait_until(lambda: feedback and feedback[-1].feedback.position > 0, WAIT,
+               'move feedback with the drive under way')
     wait_for_future(goal.cancel_goal_async(), WAIT)
     result = wait_for_future(goal.get_result_async(), WAIT).result
     assert not result.success and 'cancelled' in result.message
