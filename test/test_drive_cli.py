@@ -19,7 +19,7 @@ from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.cli import build_parser, Client, run
 from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.simulation.durand_drive import DurandDrive
-from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.simulation.durand_drive_pdos import default_drive_pdos
 
 from conftest import Harness, new_channel, wait_until
 from node_process import executable
@@ -31,12 +31,7 @@ GATEWAY = '/cbcan'  # the Harness's node
 SCALE = 1000.0  # counts per rad, counts/s per rad/s
 WAIT = 15.0
 
-PDOS = (
-    PdoConfig('tpdo', 1, ((0x6041, 0), (0x6061, 0), (0x6077, 0)), 255, 20),
-    PdoConfig('tpdo', 2, ((0x6064, 0), (0x606C, 0)), 255, 10),
-    PdoConfig('rpdo', 1, ((0x6040, 0), (0x607A, 0), (0x6060, 0)), 255),
-    PdoConfig('rpdo', 2, ((0x60FF, 0), (0x6071, 0)), 255),
-)
+PDOS = default_drive_pdos()  # the simulated drive's own, as make run has them
 
 
 class Axis:

@@ -30,7 +30,7 @@ from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.ros.node import SHUTDOWN_LIMIT
 from cbcan_ros.simulation.durand_drive import DurandDrive
-from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.simulation.durand_drive_pdos import default_drive_pdos
 from cbcan_ros.simulation.durand_scheduler import shared_scheduler
 from cbcan_ros.srv import DriveCommand, NmtCommand
 
@@ -65,12 +65,7 @@ HALT = 1 << 8
 QUICK_STOP, DISABLE_VOLTAGE = 0x0002, 0x0000
 STOPPED = ('QUICK_STOP_ACTIVE', 'SWITCH_ON_DISABLED')
 
-PDOS = (
-    PdoConfig('tpdo', 1, ((0x6041, 0), (0x6061, 0), (0x6077, 0)), 255, 20),
-    PdoConfig('tpdo', 2, ((0x6064, 0), (0x606C, 0)), 255, 10),
-    PdoConfig('rpdo', 1, ((0x6040, 0), (0x607A, 0), (0x6060, 0)), 255),
-    PdoConfig('rpdo', 2, ((0x60FF, 0), (0x6071, 0)), 255),
-)
+PDOS = default_drive_pdos()  # the simulated drive's own, as make run has them
 
 
 # Reading the frames.
