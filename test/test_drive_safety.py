@@ -473,19 +473,26 @@ def test_a_drive_in_pre_operational_is_still_halted_when_targets_stop(rig):
 
 # 3. The gateway's heartbeat, watched by the drive.
 
+CONSUMER_MS = 1500
+
+
 def consumer_write(message) -> bool:
-    """Return whether ``message`` writes (OWN_ID << 16) | 300 ms to the drive's 0x1016:1."""
-    return expedited_download(message) == (CONSUMER_HEARTBEAT, 1, OWN_ID << 16 | 300)
+    """Return whether ``message`` writes (OWN_ID << 16) | CONSUMER_MS to the drive's 0x1016:1."""
+    return expedited_download(message) == (CONSUMER_HEARTBEAT, 1, OWN_ID << 16 | CONSUMER_MS)
 
 
 def test_the_drive_watches_the_gateway_and_stops_by_itself_when_it_is_killed(rig):
-    axis = rig('-p', f'heartbeat.node_id:={OWN_ID}', '-p', 'heartbeat.period:=0.05',
-               '-p', 'drives.consumer_time:=0.3', '-p', 'drives.command_timeout:=0.0')
+    # Beats a second apart: a consumer watches from the first beat it hears, so the gateway
+    # sends one right after each write of 0x1016:1, and a kill right after the enable, before
+    # the next beat on the grid, still stops the drive.
+    axis = rig('-p', f'heartbeat.node_id:={OWN_ID}', '-p', 'heartbeat.period:=1.0',
+               '-p', f'drives.consumer_time:={CONSUMER_MS / 1000}',
+               '-p', 'drives.command_timeout:=0.0')
     axis.wait_state('SWITCH_ON_DISABLED')
     axis.recorder.first(consumer_write, 'the consumer heartbeat written to 0x1016:1')
-    entry = struct.pack('<I', OWN_ID << 16 | 300)
+    entry = struct.pack('<I', OWN_ID << 16 | CONSUMER_MS)
     wait_until(lambda: axis.drive.value(CONSUMER_HEARTBEAT, 1) == entry, ANSWER,
-               'the drive holding 0x1016:1 = 0x0064012C')
+               'the drive holding 0x1016:1 = 0x006405DC')
     # After a boot the drive has its default (no consumer): the gateway writes it again.
     booted = axis.recorder.mark()
     answer = call(axis.client(NmtCommand, 'nmt_command'), NmtCommand.Request(
@@ -592,8 +599,8 @@ def test_a_drive_heard_again_without_a_boot_is_not_left_running(rig):
 
 # 5. The managed node.
 
-MANAGED = ('-p', f'heartbeat.node_id:={OWN_ID}', '-p', 'drives.consumer_time:=0.3',
-           '-p', 'drives.command_timeout:=0.0')
+MANAGED = ('-p', f'heartbeat.node_id:={OWN_ID}', '-p', 'drives.command_timeout:=0.0',
+           '-p', f'drives.consumer_time:={CONSUMER_MS / 1000}')
 
 
 def managed_transition(axis: DriveRig, transition_id: int) -> None:

@@ -120,6 +120,22 @@ def test_the_producer_beats_its_state_pauses_while_the_bus_is_down_and_stops():
     assert bus.count() == sent, 'a beat after stop() returned'
 
 
+def test_beat_now_sends_a_beat_at_once_between_those_of_a_long_period():
+    # A drive told to watch the gateway watches from the first beat it hears: one goes out
+    # at once, not a period later (here a period no test outlasts).
+    bus = FakeSupervisor()
+    producer = HeartbeatProducer(bus, 9, 3600.0)
+    producer.start()
+    try:
+        wait_until(lambda: bus.count() == 1, ANSWER, 'the first beat, at start')
+        for beats in (2, 3):
+            producer.beat_now()
+            wait_until(lambda count=beats: bus.count() == count, ANSWER, f'beat {beats}')
+    finally:
+        producer.stop()
+    assert set(bus.frames) == {(0x709, OPERATIONAL)}
+
+
 def test_node_id_0_sends_nothing():
     bus = FakeSupervisor()
     producer = HeartbeatProducer(bus, 0, 0.01)

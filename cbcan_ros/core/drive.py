@@ -15,7 +15,8 @@ Safety lives here, below ROS:
 - the gateway's shutdown (and a managed node's deactivation) sends ``on_shutdown`` to every
   powered drive before the bus closes;
 - with a gateway heartbeat, each drive is told to watch it (0x1016) whenever it is first heard
-  and after every boot, so it stops by itself when the gateway dies;
+  and after every boot, and a beat follows at once (a consumer watches from the first beat it
+  hears), so it stops by itself when the gateway dies;
 - a drive that faults, stops heartbeating or boots refuses targets until a fresh ``enable``;
   one found running when heard (heard again without a boot, or at the gateway's start) is
   quick-stopped: no program of the gateway's commands it.
@@ -47,8 +48,7 @@ from .sdo import check_node_id
 LOGGER = logging.getLogger(__name__)
 
 SHUTTING_DOWN = 'the gateway is shutting down'
-# How long a command may take unless its caller says: every drive takes each transition in
-# milliseconds; homing runs for as long as the axis travels.
+# A command's time unless its caller says: a transition takes ms, homing as long as it travels.
 DEFAULT_TIMEOUT = 2.0
 HOMING_TIMEOUT = 60.0
 # A drive's initial read that failed is tried again on a later heartbeat, at most this often.
@@ -64,16 +64,15 @@ class DriveService:
     ``network`` is the gateway's canopen network, ``monitor`` its heartbeat monitor, ``pdo``
     its PDO service, ``sdo_batch`` its SDO batch call, ``sync_producing()`` whether it
     produces SYNC, ``write_protection`` its write rules, ``bus_down()`` why the bus is down
-    (None while it is up).
+    (None while it is up), ``beat_now()`` sends the gateway's heartbeat at once.
     """
 
     def __init__(self, network, settings: DriveSettings, monitor, pdo, sdo_batch,
                  sync_producing: Callable[[], bool], write_protection,
-                 bus_down: Callable[[], Optional[str]] = lambda: None):
-        self.settings = settings
-        self._network = network
-        self._monitor = monitor
-        self._sdo_batch = sdo_batch
+                 bus_down: Callable[[], Optional[str]] = lambda: None,
+                 beat_now: Callable[[], None] = lambda: None):
+        self.settings, self._network, self._monitor = settings, network, monitor
+        self._sdo_batch, self._beat_now = sdo_batch, beat_now
         self._protection = write_protection
         self._bus_down = bus_down
         self._lock = threading.RLock()
@@ -402,7 +401,8 @@ class DriveService:
                           if index in values})
         if self.status(drive.node_id).state == cia402.OPERATION_ENABLED:
             await safety.stop_unattended(drive, self._lock, 'was OPERATION_ENABLED when heard')
-        await safety.watch_the_gateway(self._sdo_batch, drive.node_id, self.settings)
+        await safety.watch_the_gateway(self._sdo_batch, drive.node_id, self.settings,
+                                       self._beat_now)
 
     async def _read_error(self, drive: DriveRecord) -> None:
         values = await asyncio.wrap_future(drive.objects.read([cia402.ERROR_CODE],

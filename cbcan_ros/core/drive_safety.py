@@ -16,7 +16,7 @@ from dataclasses import replace
 import logging
 import struct
 import time
-from typing import Iterable, Optional
+from typing import Callable, Iterable, Optional
 
 from . import cia402
 from .drive_status import DriveRecord, DriveSettings
@@ -105,8 +105,13 @@ def command_timed_out(drive: DriveRecord, settings: DriveSettings, lock) -> Opti
     return word
 
 
-async def watch_the_gateway(sdo_batch, node_id: int, settings: DriveSettings) -> None:
-    """Tell drive ``node_id`` to watch the gateway's heartbeat (0x1016:1), when configured."""
+async def watch_the_gateway(sdo_batch, node_id: int, settings: DriveSettings,
+                            beat_now: Callable[[], None]) -> None:
+    """Tell drive ``node_id`` to watch the gateway's heartbeat (0x1016:1), when configured.
+
+    A beat follows the write at once: a consumer watches from the first beat it hears, and a
+    drive enabled before the next beat on the grid would run on if the gateway died then.
+    """
     if not (settings.consumer_time and settings.heartbeat_node_id):
         return
     entry = (settings.heartbeat_node_id << 16) | round(settings.consumer_time * 1000)
@@ -114,6 +119,7 @@ async def watch_the_gateway(sdo_batch, node_id: int, settings: DriveSettings) ->
         [Access(node_id, cia402.CONSUMER_HEARTBEAT, 1, True, struct.pack('<I', entry))],
         CONSUMER_TIMEOUT))
     if written[0].success:
+        beat_now()
         LOGGER.info('drive %d watches the gateway heartbeat (0x1016:1 = 0x%08X): it stops by '
                     'itself after %.3f s without it', node_id, entry, settings.consumer_time)
     else:

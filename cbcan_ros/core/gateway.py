@@ -170,7 +170,8 @@ class Gateway:
                                    lambda accesses, timeout: self._batch(accesses, timeout,
                                                                          True),
                                    lambda: self.sync.producing,
-                                   config.write_protection, self._bus_down)
+                                   config.write_protection, self._bus_down,
+                                   self.heartbeat.beat_now)
         self.emcy.add_listener(lambda emergency: self.drives.on_emcy(
             emergency.node_id, emergency.error_code))
         self.raw = RawFrames(self.bus, config.raw, config.write_protection,
