@@ -128,7 +128,12 @@ class PdoTopics:
             self._node.destroy_subscription(subscription)
 
     def _queue_frame(self, received: ReceivedPdo) -> None:
-        # The bus thread: one put on a queue written in C, no lock of ours.
+        # The bus thread: one put on a queue written in C, no lock of ours. A frame of a topic
+        # nobody subscribes to is dropped here rather than waking the publishing thread for
+        # nothing (volatile: a later subscriber would never get it), as drives send theirs
+        # every few milliseconds whether anyone listens or not.
+        if not self._publishers[received.mapping.node_id].get_subscription_count():
+            return
         if self._queue.qsize() >= QUEUE_LIMIT:
             self.dropped += 1
             return
@@ -145,8 +150,6 @@ class PdoTopics:
                 continue
             mapping = received.mapping
             publisher = self._publishers[mapping.node_id]
-            if not publisher.get_subscription_count():
-                continue  # volatile: nobody would ever get it, so it costs nothing
             try:
                 # One message per PDO, filled again for each frame (the thread's own).
                 kept = messages.get((mapping.node_id, mapping.number))
