@@ -339,12 +339,16 @@ def test_shutdown_during_a_scan_answers_every_call_and_only_returns_devices_to_w
         scan = gateway.call_async('lss_scan', first_node_id=30, timeout=60.0)
         queued = gateway.call_async('lss_inquire', identity=identity(0x7), timeout=60.0)
         first_frame(bus, LSS_MASTER)  # the scan is under way
+        # The moment shutdown closes the bus to everything but the frames that end a running
+        # operation; until then the scan goes on (the thread below may start late).
+        supervisor = gateway.node.gateway.bus
+        gated, restrict = [], supervisor.restrict_sending
+        supervisor.restrict_sending = lambda *rule: (restrict(*rule), gated.append(time.time()))
         stopping = threading.Thread(target=gateway.node.interface.shut_down)
-        began = time.time()
         stopping.start()
         answers = [wait_for_future(scan, 10.0), wait_for_future(queued, 10.0)]
         stopping.join(10.0)
-        late = [m for m in frames(bus, 0.3, LSS_MASTER) if m.timestamp > began]
+        late = [m for m in frames(bus, 0.3, LSS_MASTER) if m.timestamp > gated[0]]
     finally:
         bus.shutdown()
     for response in answers:
