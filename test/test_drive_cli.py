@@ -209,8 +209,12 @@ def test_ctrl_c_cancels_a_move_and_prints_where_the_drive_halted(axis):
     reader = threading.Thread(target=lambda: printed.extend(process.stdout), daemon=True)
     reader.start()
     try:
-        wait_until(lambda: any(line.startswith(f'node {NODE}: position ') for line in printed),
-                   WAIT * 2, f'feedback of the move; printed: {printed}')
+        # Interrupted once under way: feedback can come before the drive's first step.
+        under_way = f'node {NODE}: position '
+        wait_until(lambda: any(line.startswith(under_way) and
+                               float(line[len(under_way):].split(',')[0]) > 0
+                               for line in printed),
+                   WAIT * 2, f'feedback of the move under way; printed: {printed}')
         process.send_signal(signal.SIGINT)
         assert process.wait(WAIT * 2) == 130, ''.join(printed)
     finally:

@@ -1,9 +1,9 @@
 """A deeper kernel receive buffer for the socket-based CAN interfaces (python-can gap).
 
 python-can opens ``socketcan`` and ``udp_multicast`` sockets with the kernel's default receive
-buffer (``net.core.rmem_default``, 208 KiB on most Linux machines). A frame takes about 1 KiB
-of it (the kernel counts a datagram's whole buffer, not its 16 bytes), so the socket holds
-some 200 frames: 40 ms of a bus carrying 5,000 frames/s. A receive thread held up longer (a
+buffer (``net.core.rmem_default``, 208 KiB on most Linux machines). A frame takes over 800
+bytes of it (the kernel counts a datagram's whole buffer, not its 16 bytes), so the socket
+holds some 250 frames: 50 ms of a bus carrying 5,000 frames/s. A receive thread held up longer (a
 busy machine, the interpreter lock) and the kernel drops frames without a word, an SDO
 answer among them, which the caller then sees as a timeout. python-can has no option for the
 buffer's size, so :func:`deepen_receive_buffer` sets it on the socket it keeps.
