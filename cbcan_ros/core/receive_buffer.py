@@ -30,25 +30,24 @@ def _socket_of(bus: can.BusABC) -> Optional[socket.socket]:
     return found if isinstance(found, socket.socket) else None
 
 
-def deepen_receive_buffer(bus: can.BusABC, size: int = RECEIVE_BUFFER) -> Optional[int]:
+def deepen_receive_buffer(bus: can.BusABC, size: int = RECEIVE_BUFFER) -> None:
     """Ask the kernel for a receive buffer of ``size`` bytes on ``bus``'s socket.
 
-    Returns the size the kernel granted, or None for a bus without a socket of its own
-    (``virtual``, ``slcan``, vendors' drivers, whose buffers their drivers size). A kernel
-    that grants less than half of it gets one warning naming the setting that limits it.
+    A bus without a socket of its own (``virtual``, ``slcan``, vendors' drivers, whose
+    buffers their drivers size) is left as it is. A kernel that grants less than half of it
+    gets one warning naming the setting that limits it.
     """
     sock = _socket_of(bus)
     if sock is None:
-        return None
+        return
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
         granted = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
     except OSError as error:
         LOGGER.warning('the CAN socket keeps its default receive buffer (%s): frames that '
                        'arrive while the gateway is held up may be lost', error)
-        return None
+        return
     if granted < size:
         LOGGER.warning('the kernel granted a CAN receive buffer of %d KiB of the %d KiB asked '
                        'for (sysctl net.core.rmem_max caps it): a burst of frames while the '
                        'gateway is held up may be lost', granted // 1024, size // 1024)
-    return granted

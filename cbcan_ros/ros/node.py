@@ -83,7 +83,8 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
     """Spin the node ``make_node`` returns until SIGINT or SIGTERM; a second signal ends it.
 
     The node must have ``shut_down_gateway()``, called before the executor stops, so every
-    waiting call is answered while ROS can still deliver it.
+    waiting call is answered while ROS can still deliver it. The process ends within
+    ``SHUTDOWN_LIMIT`` of the signal, also after this returns: call it as a program's last act.
     """
     stop = threading.Event()
 
