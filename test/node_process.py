@@ -8,7 +8,6 @@ block that belongs to its ROS domain id, which no other running test process hol
 through python-can's own environment configuration (``CAN_CONFIG``).
 """
 
-import contextlib
 import itertools
 import json
 import os
@@ -123,19 +122,6 @@ def call(client, request, what: str, gateway: NodeProcess, timeout: float = 10.0
     except AssertionError as error:
         raise AssertionError(f'{what}: {error}\ncbcan_node output:\n{gateway.output()}') \
             from None
-
-
-def first_call(client, request, what: str, gateway: NodeProcess, attempts: int = 3):
-    """Call an idempotent service for the first time after discovery, asking again if lost.
-
-    ``wait_for_service`` says the node takes requests; DDS may still be matching the client's
-    reader of answers, and an answer sent before that match is lost, which is not the node's
-    doing. Only for calls that may be repeated (reads): a lost answer is asked again.
-    """
-    for _ in range(attempts - 1):
-        with contextlib.suppress(AssertionError):
-            return call(client, request, what, gateway)
-    return call(client, request, what, gateway)
 
 
 def service_client(client_node, service_type, name: str, gateway: NodeProcess):

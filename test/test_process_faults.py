@@ -10,7 +10,7 @@ from cbcan_ros.srv import SdoRead, SdoWrite
 
 from conftest import HEAVY, new_channel, wait_for_future, wait_until
 from fake_slcan import FakeSlcanAdapter
-from node_process import arguments, EDS, first_call, namespace, service_client, StateWatcher
+from node_process import arguments, call, EDS, namespace, service_client, StateWatcher
 
 # Reopening backs off up to 5 s between attempts; with room for a loaded machine.
 RECOVERY = 20.0
@@ -39,8 +39,7 @@ def test_slcan_adapter_plugged_in_late_unplugged_and_plugged_back(
         request = SdoRead.Request(node_id=2, index=0x1000, subindex=0)
 
         # Started before the adapter was plugged in: honest errors, no exit.
-        answer = first_call(sdo_read, request, 'sdo_read before the adapter is plugged in',
-                            gateway)
+        answer = call(sdo_read, request, 'sdo_read before the adapter is plugged in', gateway)
         assert not answer.success
         assert 'CAN bus is down' in answer.message and 'cannot open' in answer.message
         assert gateway.process.poll() is None

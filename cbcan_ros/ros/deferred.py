@@ -22,6 +22,7 @@ import threading
 import time
 from typing import Callable, Dict, Tuple
 
+from .answer_retry import AnswerRetry
 from .rclpy_gaps import intercept_responses
 
 LOGGER = logging.getLogger(__name__)
@@ -81,17 +82,18 @@ class DeferredService:
     """
 
     def __init__(self, node, srv_type, name: str, start: Callable[[object], Future],
-                 fill: Callable[[object, object], None], calls: CallsInProgress, **options):
+                 fill: Callable[[object, object], None], calls: CallsInProgress,
+                 retry: AnswerRetry, **options):
         self._start = start
         self._fill = fill
         self._calls = calls
         self._pending: Dict[int, Tuple[Future, object]] = {}
         self._lock = threading.Lock()
-        self._send_lock = threading.Lock()
         self._send_failures = set()
         self._node = node
         self._service = node.create_service(srv_type, name, self._take, **options)
-        self._send = intercept_responses(self._service, self._send_when_ready)
+        self._send = retry.sender(
+            self._service, intercept_responses(self._service, self._send_when_ready))
 
     @property
     def service(self):
@@ -123,8 +125,7 @@ class DeferredService:
             if hasattr(response, 'message'):
                 response.message = f'internal error of the gateway: {error}'[:300]
         try:
-            with self._send_lock:
-                self._send(response, header)
+            self._send(response, header)
         except Exception as error:  # noqa: BLE001 - a lost answer must be seen, once
             kind = type(error).__name__
             if kind not in self._send_failures:

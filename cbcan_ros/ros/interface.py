@@ -45,6 +45,7 @@ from ..srv import (
     SdoRead,
     SdoWrite,
 )
+from .answer_retry import AnswerRetry
 from .config import NodeParameters
 from .deferred import CallsInProgress, DeferredService
 from .diagnostics import Diagnostics
@@ -178,6 +179,7 @@ class GatewayInterface:
             device.start()
 
         self._calls = CallsInProgress()
+        self._retry = AnswerRetry()
         self._mailbox_loop = CoroutineRunner('plc mailbox')
         self._mailbox = Mailbox(self.gateway, asyncio.wrap_future)
         self._drives = DriveTopics(node, self.gateway.drives, parameters.joints(),
@@ -186,7 +188,7 @@ class GatewayInterface:
         options = dict(qos_profile=SERVICE_QOS, callback_group=ReentrantCallbackGroup())
         self._deferred = [
             DeferredService(node, service_type, f'~/{name}', start, fill, self._calls,
-                            **options)
+                            self._retry, **options)
             for service_type, name, start, fill in (
                 (SdoRead, 'sdo_read', self._start_read, _fill_result),
                 (SdoWrite, 'sdo_write', self._start_write, _fill_result),
@@ -206,6 +208,8 @@ class GatewayInterface:
         self._raw = RawFrameTopics(node, self.gateway.raw, lambda: None if self.active
                                    else INACTIVE, self.gateway.config.channel, **options)
         self._services.append(self._raw.service)
+        for service in self._services:
+            self._retry.retry_dropped_answers(service)
 
         self._states_publisher = node.create_publisher(NodeStates, '~/node_states',
                                                        NODE_STATES_QOS)
@@ -313,13 +317,15 @@ class GatewayInterface:
         for _ in range(LINGER_ROUNDS):
             drained, plain_drained = self._drain()
             plain += plain_drained
-            if not drained and self._calls.answered == answered_then:
+            if (not drained and self._calls.answered == answered_then
+                    and not self._retry.waiting):
                 break
             answered_then = self._calls.answered
             time.sleep(ANSWER_LINGER)
             lingered += ANSWER_LINGER
         else:  # what arrived during the last wait is answered, not waited for
             plain += self._drain()[1]
+        self._retry.close()
         answered = self._calls.answered - self._answered_before_shutdown + plain
         logger = self._node.get_logger()
         logger.info(f'shutdown: {answered} calls answered while shutting down; services kept '
