@@ -14,12 +14,10 @@ Safety lives here, below ROS:
 - in the streaming modes a drive whose targets stop for ``command_timeout`` is halted;
 - the gateway's shutdown (and a managed node's deactivation) sends ``on_shutdown`` to every
   powered drive before the bus closes;
-- with a gateway heartbeat, each drive is told to watch it (0x1016) whenever it is first heard
-  and after every boot, and a beat follows at once (a consumer watches from the first beat it
-  hears), so it stops by itself when the gateway dies;
-- a drive that faults, stops heartbeating or boots refuses targets until a fresh ``enable``;
-  one found running when heard (heard again without a boot, or at the gateway's start) is
-  quick-stopped: no program of the gateway's commands it.
+- with a gateway heartbeat, each drive watches it (0x1016, written when first heard and after
+  each boot, then a beat at once) and stops by itself when the gateway dies;
+- a drive that faults, stops heartbeating or boots refuses targets until a fresh ``enable``,
+  and is UNKNOWN until re-read; one found running when re-read is quick-stopped.
 """
 
 import asyncio
@@ -297,11 +295,13 @@ class DriveService:
                 return
             drive.read_wanted += 1
             request = drive.read_wanted
-            if boot:
+            if boot:  # UNKNOWN until re-read: its feedback waits for that read (_apply)
                 drive.objects.forget()
                 drive.halted_by = ''
-                drive.status = replace(drive.status, needs_enable=True, halted=False)
+                drive.status = replace(drive.status, state=cia402.UNKNOWN, needs_enable=True,
+                                       halted=False)
         if boot:
+            self._notify(self.status(drive.node_id))
             self._wake(drive)
         self._runner.submit(self._initial_read(drive, request))
 
@@ -330,8 +330,8 @@ class DriveService:
         """Take feedback values of ``drive``: update its status, wake what waits, tell."""
         with self._lock:
             old = drive.status
-            if not drive.heard:
-                return  # a frame after its heartbeat was lost: it is re-read when heard
+            if not drive.heard or drive.read_done != drive.read_wanted:
+                return  # lost, or heard again and not re-read yet: that read would undo it
             statusword = values.get(cia402.STATUSWORD, old.statusword)
             state = cia402.state_of(statusword) if cia402.STATUSWORD in values else old.state
             new = replace(old, statusword=statusword, state=state,
