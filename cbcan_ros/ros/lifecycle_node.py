@@ -14,6 +14,7 @@ and configure again.
 
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 
+from .answer_retry import retry_the_node_services
 from .config import NodeParameters
 from .interface import GatewayInterface
 from .node import run
@@ -30,6 +31,7 @@ class CbcanLifecycleNode(LifecycleNode):
         # rclpy's change_state raises for a transition the current state does not have
         # (configure twice), which would end the node; rclcpp answers success false.
         refuse_unavailable_transitions(self)
+        self._answers = retry_the_node_services(self)
 
     @property
     def gateway(self):
@@ -78,6 +80,7 @@ class CbcanLifecycleNode(LifecycleNode):
     def destroy_node(self) -> None:
         """Close the bus if it is open, then destroy the node."""
         self._close()
+        self._answers.close()
         super().destroy_node()
 
     def _close(self) -> None:

@@ -19,6 +19,7 @@ from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from .answer_retry import retry_the_node_services
 from .config import NodeParameters
 from .interface import ANSWER_GRACE, GatewayInterface
 
@@ -59,6 +60,7 @@ class CbcanNode(Node):
     def __init__(self, **kwargs):
         super().__init__('cbcan', **kwargs)
         self._destroyed = False
+        self._answers = retry_the_node_services(self)
         self.interface = GatewayInterface(self, NodeParameters(self))
 
     @property
@@ -76,6 +78,7 @@ class CbcanNode(Node):
             return
         self._destroyed = True
         self.interface.destroy()
+        self._answers.close()
         super().destroy_node()
 
 

@@ -47,12 +47,13 @@ _sending = threading.local()
 _hook_lock = threading.Lock()
 
 
-def _watch_for_dropped_answers() -> None:
+def watch_for_dropped_answers() -> None:
     """Make the warning rclpy raises for a dropped answer reach :func:`send_or_report_dropped`.
 
     The warning is raised in C and shown through ``warnings._showwarnmsg``, which a test
     runner's ``catch_warnings`` leaves in place. The first filter shows it every time: the
-    default shows it once per place, and another filter put first might hide it.
+    default shows it once per place, and another filter put first might hide it or make it
+    an error. The filter is the process's: unwrapped services' drops are shown every time.
     """
     with _hook_lock:
         show = warnings._showwarnmsg
@@ -67,8 +68,8 @@ def _watch_for_dropped_answers() -> None:
             show_or_report.reports_dropped_answers = True
             warnings._showwarnmsg = show_or_report
         first = warnings.filters[0] if warnings.filters else None
-        if not (first and first[0] == 'always' and first[1] is not None
-                and first[1].pattern == re.escape(_DROPPED)):
+        if not (first and first[0] == 'always'
+                and getattr(first[1], 'pattern', first[1]) == re.escape(_DROPPED)):
             warnings.filterwarnings('always', message=re.escape(_DROPPED),
                                     category=RuntimeWarning)
 
@@ -79,11 +80,18 @@ def send_or_report_dropped(send: Callable, response, header) -> bool:
     Dropped means the middleware did not take the answer (rmw returned a timeout), so the
     same answer may be offered again; any other failure raises as rclpy raises it.
     """
-    _watch_for_dropped_answers()
+    watch_for_dropped_answers()
     _sending.dropped = False
     _sending.watching = True
     try:
         send(response, header)
+    except SystemError as error:
+        # An "error" filter put first by another thread meanwhile: rclpy ignores that its
+        # warning raised, and Python reports the exception left set as a SystemError.
+        cause = error.__cause__ or error.__context__
+        if not (isinstance(cause, RuntimeWarning) and str(cause).startswith(_DROPPED)):
+            raise
+        return False
     finally:
         _sending.watching = False
     return not _sending.dropped
