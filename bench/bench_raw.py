@@ -108,6 +108,13 @@ class BareBridge:
         self._bus.shutdown()
 
 
+def _until_sigterm() -> None:
+    """Return when this process is sent SIGTERM (how the benchmark ends its helpers)."""
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    stop.wait()
+
+
 def run_bare_bridge(group: str, port: int, namespace: str) -> int:
     """Run a bare bridge as its own process until SIGTERM (``--bare-bridge``)."""
     import can
@@ -115,9 +122,7 @@ def run_bare_bridge(group: str, port: int, namespace: str) -> int:
     rclpy.init()
     node = rclpy.create_node('bare_bridge', namespace=namespace)
     bridge = BareBridge(node, can.Bus(interface='udp_multicast', channel=group, port=port))
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    stop.wait()
+    _until_sigterm()
     bridge.close()
     node.destroy_node()
     rclpy.try_shutdown()
@@ -261,10 +266,8 @@ def run_device(group: str, port: int) -> int:
     from cbcan_ros.simulation.durand_device import DurandDevice
     device = DurandDevice(2, interface='udp_multicast', channel=group,
                           bus_options={'port': port})
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     device.start()
-    stop.wait()
+    _until_sigterm()
     device.stop()
     return 0
 

@@ -138,8 +138,10 @@ class RawFrameTopics:
 
     def _queue_frame(self, message: can.Message, stamp: float) -> None:
         # The bus receive thread: one put on a queue written in C, no lock of ours. A frame
-        # received while the node is inactive is never published, even after activation.
-        if self._inactive():
+        # received while the node is inactive is never published, even after activation, and
+        # one nobody subscribes to is dropped here rather than waking the publishing thread
+        # (volatile: a later subscriber would never get it), as the PDO topics do.
+        if self._inactive() or not self._publisher.get_subscription_count():
             return
         if self._queue.qsize() >= QUEUE_LIMIT:
             self._raw.lost()
@@ -156,8 +158,6 @@ class RawFrameTopics:
             item = self._queue.get()
             if item is None or self._closing:
                 return
-            if not publisher.get_subscription_count():
-                continue  # volatile: nobody would ever get it
             message, stamp = item
             # The wall clock of a monotonic stamp is read anew for each frame; the two clocks
             # are read a moment apart, which would put a frame microseconds before the one
