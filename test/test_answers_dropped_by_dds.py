@@ -39,9 +39,11 @@ class _Middleware:
         self.blocks = blocks  # rmw's wait for the match, with the GIL held
         self.delivered = []
         self.offers = []  # when each offer was made (monotonic)
+        self.offered = []  # which answer each offer was
 
     def send_response(self, response, header) -> None:
         self.offers.append(time.monotonic())
+        self.offered.append(response)
         if len(self.offers) <= self.drops:
             time.sleep(self.blocks)
             warnings.warn(DROPPED, RuntimeWarning, stacklevel=1)
@@ -84,10 +86,11 @@ def test_an_answer_still_dropped_when_its_window_ends_is_given_up_after_few_offe
         offers = len(middleware.offers)
         retry.close()
     assert len(middleware.offers) == offers, 'nothing is offered once given up'
-    # Offers 0.1, 0.2, 0.4, 0.8 s apart (at least DROPPED_PAUSE after a drop): 6 at most in
+    # Offers 0.1, 0.2, 0.4, 0.8 s apart, at least DROPPED_PAUSE after a drop: 6 at most in
     # 2 s, where one every 0.1 s would make 20.
     assert 3 <= offers <= 6 and not middleware.delivered, middleware.offers
-    summary = lines(caplog, '1 given up (their callers not matched within 2 s)')
+    assert len(lines(caplog, 'an answer of /test/sdo_read was given up')) == 1, caplog.text
+    summary = lines(caplog, '1 given up (1 whose callers never matched within 2 s)')
     assert len(summary) == 1 and summary[0].startswith('answers DDS dropped'), caplog.text
 
 
@@ -106,14 +109,17 @@ def test_offers_to_callers_still_unmatched_are_spaced_whatever_their_number(monk
     assert gaps and min(gaps) >= answer_retry.DROPPED_PAUSE - 0.05, gaps
 
 
-def test_close_gives_up_what_is_kept_after_at_most_one_offer_in_progress(caplog):
-    middleware = _Middleware(drops=10 ** 6, blocks=0.1)
+def test_close_gives_up_what_is_kept_after_at_most_one_offer_in_progress(
+        caplog, monkeypatch):
+    monkeypatch.setattr(answer_retry, 'RETRY_WINDOW', 60.0)
+    middleware = _Middleware(drops=10 ** 6)
     retry = AnswerRetry()
     answer = retry.sender(_Service(), middleware.send_response)
     with caplog.at_level(logging.INFO):
         for number in range(answer_retry.MOST_KEPT + 5):
             answer(f'answer {number}', number)
         assert retry.waiting == answer_retry.MOST_KEPT, 'at most MOST_KEPT are kept'
+        middleware.blocks = 0.1  # from now on each offer waits for the match, as rmw does
         began = time.monotonic()
         retry.close()
         closing = time.monotonic() - began
@@ -122,10 +128,48 @@ def test_close_gives_up_what_is_kept_after_at_most_one_offer_in_progress(caplog)
     assert closing < 2.0, f'close took {closing:.1f} s'  # a round of 100 offers: 10 s
     assert len(middleware.offers) == offers + 1, 'an answer after close is tried once, not kept'
     assert not retry.waiting
-    summary = lines(caplog, 'given up when the services went away')
-    assert len(summary) == 1 and f'{answer_retry.MOST_KEPT + 5} given up' in summary[0], \
-        caplog.text
-    assert len(lines(caplog, '1 given up during shutdown')) == 1, caplog.text
+    most = answer_retry.MOST_KEPT
+    summary = lines(caplog, f'{most + 5} given up (5 beyond the {most} kept, {most} at shutdown)')
+    assert len(summary) == 1, caplog.text
+    assert len(lines(caplog, '1 given up (1 at shutdown)')) == 1, caplog.text
+
+
+def test_a_new_dropped_answer_is_offered_before_those_offered_many_times(monkeypatch):
+    monkeypatch.setattr(answer_retry, 'RETRY_WINDOW', 60.0)
+    middleware = _Middleware(drops=10 ** 6)
+    retry = AnswerRetry()
+    answer = retry.sender(_Service(), middleware.send_response)
+    for number in range(5):  # a caller that never matches, calling again and again
+        answer(f'unmatched {number}', number)
+    wait_until(lambda: len(middleware.offers) >= 5 + 3 * 5, 30.0, 'each offered again thrice')
+    answer('new', 'its header')
+    new_drop = len(middleware.offered)
+    wait_until(lambda: middleware.offered.count('new') >= 2, 30.0, 'the new answer offered again')
+    retry.close()
+    assert middleware.offered[new_drop] == 'new', middleware.offered[new_drop - 1:]
+
+
+def test_an_answer_that_cannot_be_offered_again_is_given_up_and_the_others_go_on(caplog):
+    calls = []
+
+    def send(response, header):
+        calls.append(response)
+        if calls.count(response) == 1:
+            warnings.warn(DROPPED, RuntimeWarning, stacklevel=1)
+        elif response == 'broken':
+            raise RuntimeError('the service went away')
+    retry = AnswerRetry()
+    answer = retry.sender(_Service(), send)
+    with caplog.at_level(logging.INFO):
+        answer('broken', 1)
+        wait_until(lambda: calls.count('broken') == 2, 10.0, 'the broken answer offered again')
+        answer('fine', 2)
+        wait_until(lambda: calls.count('fine') == 2, 10.0, 'a later answer offered again')
+        wait_until(lambda: not retry.waiting, 10.0, 'nothing kept')
+        retry.close()
+    assert calls.count('broken') == 2, 'given up, not offered for ever'
+    assert len(lines(caplog, 'could not be offered again')) == 1, caplog.text
+    assert lines(caplog, '1 that could not be sent'), caplog.text
 
 
 def test_a_drop_on_one_thread_is_not_taken_for_another_threads_answer():
@@ -202,5 +246,5 @@ def test_the_node_offers_again_what_rmw_really_dropped_and_answers_others_meanwh
     named = ', '.join(match[1] for match in given_up())
     for service in ('~/nmt_state', '~/sdo_read', 'get_parameters'):
         assert service in named, output
-    assert 'not matched within 10 s' in output, output
+    assert 'never matched within 10 s' in output, output
     assert 'failed to send response' not in output, output
