@@ -9,10 +9,11 @@ from concurrent.futures import Future
 import math
 import struct
 import threading
+import time
 
 import pytest
 from std_msgs.msg import Float64
-from test_drives import CSV, NODE, Rig, WAIT
+from test_drives import CSV, NODE, PP, Rig, WAIT
 
 from cbcan_ros.core.nmt import NOT_DETECTED
 
@@ -27,22 +28,68 @@ CONSUMER_MS = 300
 CONSUMER_HEARTBEAT = 0x1016
 
 
-@pytest.fixture
-def pulled(ros_context, start_durand):
-    """Return (rig, faults): a gateway behind the faulty adapter, its drive enabled in CSV."""
-    axis = Rig(start_durand, **{'can.interface': 'faulty', 'heartbeat.node_id': OWN_ID,
-                                'heartbeat.period': 0.1, 'heartbeat.timeout': 0.5,
-                                'drives.consumer_time': CONSUMER_MS / 1000})
+def enabled_behind_a_faulty_adapter(start_durand, watching: bool = True):
+    """Return (rig, faults): a gateway behind the faulty adapter, its drive turning in CSV.
+
+    ``watching``: the drive watches the gateway's heartbeat (and stops when cut off).
+    """
+    watch = {'heartbeat.node_id': OWN_ID, 'heartbeat.period': 0.1,
+             'drives.consumer_time': CONSUMER_MS / 1000} if watching else {}
+    axis = Rig(start_durand, **{'can.interface': 'faulty', 'heartbeat.timeout': 0.5, **watch})
     faults = FaultController.get(axis.gateway.channel)
-    entry = struct.pack('<I', OWN_ID << 16 | CONSUMER_MS)
-    wait_until(lambda: axis.drive.value(CONSUMER_HEARTBEAT, 1) == entry, WAIT,
-               'the drive watching the gateway (0x1016:1)')
+    try:
+        start_turning(axis, watching)
+    except BaseException:
+        axis.close()
+        raise
+    return axis, faults
+
+
+def start_turning(axis, watching: bool) -> None:
+    """Enable the drive in CSV and turn it; with ``watching``, once it watches the gateway."""
+    if watching:
+        entry = struct.pack('<I', OWN_ID << 16 | CONSUMER_MS)
+        wait_until(lambda: axis.drive.value(CONSUMER_HEARTBEAT, 1) == entry, WAIT,
+                   'the drive watching the gateway (0x1016:1)')
     axis.enable(CSV)
     axis.target.publish(Float64(data=1.0))
     wait_until(lambda: axis.drive.velocity > 0, WAIT, 'the drive turning')
+
+
+@pytest.fixture
+def pulled(ros_context, start_durand):
+    """Return (rig, faults): a gateway behind the faulty adapter, its drive enabled in CSV."""
+    axis, faults = enabled_behind_a_faulty_adapter(start_durand)
     yield axis, faults
     faults.clear()
     axis.close()
+
+
+def hold_re_reads(axis, first=None, delay: float = 0.0) -> threading.Event:
+    """Make the gateway's re-reads of the drive late; return the event that releases them.
+
+    ``first``: what the first re-read answers instead (a failed read: ``{}``); ``delay``:
+    each later one answers this long after the drive did, once released.
+    """
+    objects = axis.gateway.node.gateway.drives._drives[NODE].objects
+    read_initial, release, reads = objects.read_initial, threading.Event(), []
+
+    def held(timeout):
+        reads.append(timeout)
+        late = Future()
+        if first is not None and len(reads) == 1:
+            late.set_result(first)
+            return late
+        read = read_initial(timeout)
+
+        def answer():
+            if release.wait(WAIT):
+                time.sleep(delay)
+                late.set_result(read.result())
+        threading.Thread(target=answer, daemon=True).start()
+        return late
+    objects.read_initial = held
+    return release
 
 
 def pull(faults) -> None:
@@ -50,6 +97,18 @@ def pull(faults) -> None:
     faults.fail_open('adapter gone')
     faults.fail_send('adapter unplugged')
     faults.fail_receive('adapter unplugged')
+
+
+def heard_again(axis) -> None:
+    """Wait until the gateway hears the drive again and has taken a TPDO of it since."""
+    wait_until(lambda: axis.gateway.node.gateway.monitor.status(NODE).state != NOT_DETECTED,
+               WAIT, 'the drive heard again')
+    watch = axis.gateway.raw_bus()
+    try:  # frames arrive in order: the gateway has the TPDO once this raw bus has it
+        wait_until(lambda: (lambda m: m is not None and m.arbitration_id == 0x180 + NODE)(
+            watch.recv(0.1)), WAIT, 'a TPDO of the drive (its statusword) on the bus again')
+    finally:
+        watch.shutdown()
 
 
 def test_a_drive_cut_off_by_a_pulled_adapter_stops_and_is_not_restarted_when_it_returns(pulled):
@@ -91,27 +150,11 @@ def test_a_drive_heard_again_takes_no_command_until_it_is_re_read(pulled):
     drive would run before it watches the gateway again.
     """
     axis, faults = pulled
-    objects = axis.gateway.node.gateway.drives._drives[NODE].objects
-    read_initial, release = objects.read_initial, threading.Event()
-
-    def held(timeout):  # the drive's answers are late, as from a busy drive
-        late = Future()
-        read = read_initial(timeout)
-        threading.Thread(target=lambda: release.wait(WAIT) and late.set_result(read.result()),
-                         daemon=True).start()
-        return late
-    objects.read_initial = held
+    release = hold_re_reads(axis)
     pull(faults)
     wait_until(lambda: axis.latest_state() == 'UNKNOWN', WAIT, 'drive_state UNKNOWN')
     faults.clear()
-    wait_until(lambda: axis.gateway.node.gateway.monitor.status(NODE).state != NOT_DETECTED,
-               WAIT, 'the drive heard again')
-    watch = axis.gateway.raw_bus()
-    try:
-        wait_until(lambda: (lambda m: m is not None and m.arbitration_id == 0x180 + NODE)(
-            watch.recv(0.1)), WAIT, 'a TPDO of the drive (its statusword) on the bus again')
-    finally:
-        watch.shutdown()
+    heard_again(axis)
     refused = axis.command('enable', CSV)
     assert not refused.success and 'UNKNOWN' in refused.message, refused.message
     assert axis.latest_state() == 'UNKNOWN'
@@ -138,3 +181,54 @@ def test_a_command_under_way_when_the_adapter_is_pulled_gets_one_answer_naming_t
     assert not answer.success, answer.message
     assert 'CAN bus is down' in answer.message, answer.message
     assert axis.drive.drive_state != 'OPERATION_ENABLED'
+
+
+def test_a_re_read_that_fails_is_tried_again_until_one_succeeds_even_when_slow(pulled):
+    """One re-read at a time: each slower than the drive's heartbeat still gets to finish."""
+    axis, faults = pulled
+    hold_re_reads(axis, first={}, delay=0.6).set()
+    pull(faults)
+    wait_until(lambda: axis.latest_state() == 'UNKNOWN', WAIT, 'drive_state UNKNOWN')
+    faults.clear()
+    wait_until(lambda: axis.latest_state() not in (None, 'UNKNOWN'), WAIT,
+               'the drive re-read after a failed read')
+
+
+def test_a_drive_that_boots_during_a_move_ends_the_move_and_stays_off(ros_context, start_durand):
+    axis = Rig(start_durand)
+    try:
+        axis.enable(PP)
+        future, _cancel = axis.gateway.node.gateway.drives.move(NODE, 10 ** 6, velocity=1000)
+        wait_until(lambda: axis.drive.velocity > 0, WAIT, 'the drive moving')
+        seen = len(axis.states)
+        assert axis.gateway.call('nmt_command', node_id=NODE, command=129).success
+        result = future.result(WAIT)
+        assert not result.success and 'booted during the command' in result.message, \
+            result.message
+        wait_until(lambda: 'UNKNOWN' in [m.state for m in axis.states[seen:]], WAIT,
+                   'drive_state UNKNOWN after the boot')
+        wait_until(lambda: axis.latest_state() not in (None, 'UNKNOWN'), WAIT,
+                   'the drive re-read after its boot')
+        assert axis.drive.drive_state != 'OPERATION_ENABLED'
+        refused = axis.command('halt')
+        assert not refused.success and 'enable' in refused.message, refused.message
+    finally:
+        axis.close()
+
+
+def test_a_running_drive_heard_again_but_not_re_read_is_stopped_at_shutdown(
+        ros_context, start_durand):
+    axis, faults = enabled_behind_a_faulty_adapter(start_durand, watching=False)
+    try:
+        hold_re_reads(axis)  # never released: the re-read is still pending at shutdown
+        pull(faults)
+        wait_until(lambda: axis.latest_state() == 'UNKNOWN', WAIT, 'drive_state UNKNOWN')
+        faults.clear()
+        heard_again(axis)
+        assert axis.drive.drive_state == 'OPERATION_ENABLED', 'nobody stopped it yet'
+        assert axis.latest_state() == 'UNKNOWN'
+    finally:
+        faults.clear()
+        axis.close()
+    wait_until(lambda: axis.drive.drive_state != 'OPERATION_ENABLED', WAIT,
+               'the drive stopped by the shutdown')

@@ -35,7 +35,7 @@ from . import drive_safety as safety
 from .bus import prompt
 from .coroutine_runner import CoroutineRunner
 from .drive_commands import DriveCommands
-from .drive_cycle import FeedbackCycle
+from .drive_cycle import FeedbackCycle, poll
 from .drive_objects import decode, DriveObjects, FEEDBACK
 from .drive_status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed
 from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED, OPERATIONAL
@@ -51,9 +51,6 @@ DEFAULT_TIMEOUT = 2.0
 HOMING_TIMEOUT = 60.0
 # A drive's initial read that failed is tried again on a later heartbeat, at most this often.
 REREAD_INTERVAL = 1.0
-# What no TPDO brings is read by SDO this often, and at once after each controlword: every
-# feedback cycle would be 250 transfers a second a drive, most of a 500 kbit/s bus for a few.
-POLL_PERIOD = 0.1
 
 
 class DriveService:
@@ -244,7 +241,7 @@ class DriveService:
 
     def request_feedback(self, drive: DriveRecord) -> None:
         """Read by SDO at once what no TPDO brings (after an SDO controlword, say)."""
-        self._poll(drive, now=True)
+        poll(drive, self._lock, self.take, now=True)
 
     def set_halted(self, drive: DriveRecord, by: str) -> None:
         """Record who halted the drive ('' = nobody), and show it."""
@@ -289,12 +286,14 @@ class DriveService:
         with self._lock:
             first = not drive.heard
             drive.heard = True
-            retry = (drive.read_done < 0 and
-                     time.monotonic() - drive.read_failed_at >= REREAD_INTERVAL)
+            retry = (drive.read_done == -drive.read_wanted  # the latest failed, none runs
+                     and time.monotonic() - drive.read_failed_at >= REREAD_INTERVAL)
             if not (boot or first or retry):
                 return
             drive.read_wanted += 1
             request = drive.read_wanted
+            if boot or first:
+                drive.unread_state = ''
             if boot:  # UNKNOWN until re-read: its feedback waits for that read (_apply)
                 drive.objects.forget()
                 drive.halted_by = ''
@@ -302,6 +301,8 @@ class DriveService:
                                        halted=False)
         if boot:
             self._notify(self.status(drive.node_id))
+            self._runner.call_soon(lambda: self._commands.cancel(
+                drive, f'node {drive.node_id} booted during the command: enable it afresh'))
             self._wake(drive)
         self._runner.submit(self._initial_read(drive, request))
 
@@ -310,8 +311,8 @@ class DriveService:
         with self._lock:
             for drive in self._drives.values():
                 if drive.heard and self._monitor.status(drive.node_id).state == NOT_DETECTED:
+                    drive.lost_powered = safety.powered(drive)
                     drive.heard = False
-                    drive.lost_powered = drive.status.state in cia402.POWERED
                     drive.halted_by = ''
                     drive.status = DriveStatus(drive.node_id,
                                                supported_modes=drive.status.supported_modes,
@@ -326,12 +327,18 @@ class DriveService:
                 self._runner.submit(safety.stop_unattended(
                     drive, self._lock, 'stopped heartbeating while powered'))
 
-    def _apply(self, drive: DriveRecord, values: Dict[int, int], stamp: float) -> None:
-        """Take feedback values of ``drive``: update its status, wake what waits, tell."""
+    def _apply(self, drive: DriveRecord, values: Dict[int, int], stamp: float,
+               reread: bool = False) -> None:
+        """Take feedback values of ``drive``: update its status, wake what waits, tell.
+
+        Until its re-read is done, only that read's values (``reread``), told at its end.
+        """
         with self._lock:
             old = drive.status
-            if not drive.heard or drive.read_done != drive.read_wanted:
-                return  # lost, or heard again and not re-read yet: that read would undo it
+            if not drive.heard or (drive.ready != drive.read_wanted and not reread):
+                if drive.heard and cia402.STATUSWORD in values:  # the re-read will decide
+                    drive.unread_state = cia402.state_of(values[cia402.STATUSWORD])
+                return
             statusword = values.get(cia402.STATUSWORD, old.statusword)
             state = cia402.state_of(statusword) if cia402.STATUSWORD in values else old.state
             new = replace(old, statusword=statusword, state=state,
@@ -354,7 +361,7 @@ class DriveService:
                 new.state, new.mode, new.error_code, new.target_reached)
         if new.faulted and not old.faulted:
             self._runner.submit(self._read_error(drive))
-        if changed:
+        if changed and not reread:
             self._notify(new)
         if cia402.STATUSWORD in values or changed:
             self._wake(drive)
@@ -390,6 +397,7 @@ class DriveService:
             read = cia402.STATUSWORD in values
             drive.read_done = request if read else -request
             drive.read_failed_at = time.monotonic()
+            drive.objects.know_commanded(values)
             drive.controlword = values.get(cia402.CONTROLWORD, 0)
             drive.status = replace(drive.status, supported_modes=values.get(
                 cia402.SUPPORTED_MODES, 0))
@@ -397,12 +405,17 @@ class DriveService:
             LOGGER.warning('drive %d: its statusword could not be read; tried again on a '
                            'later heartbeat', drive.node_id)
             return
-        self.take(drive, {index: values[index] for index in (*FEEDBACK, cia402.ERROR_CODE)
-                          if index in values})
+        self._apply(drive, {index: values[index] for index in (*FEEDBACK, cia402.ERROR_CODE)
+                            if index in values}, time.monotonic(), reread=True)
         if self.status(drive.node_id).state == cia402.OPERATION_ENABLED:
             await safety.stop_unattended(drive, self._lock, 'was OPERATION_ENABLED when heard')
         await safety.watch_the_gateway(self._sdo_batch, drive.node_id, self.settings,
                                        self._beat_now)
+        with self._lock:
+            if request != drive.read_wanted:
+                return  # it booted meanwhile: a newer read follows
+            drive.ready = request  # commands go, and its feedback counts, from now
+        self._notify(self.status(drive.node_id))
 
     async def _read_error(self, drive: DriveRecord) -> None:
         values = await asyncio.wrap_future(drive.objects.read([cia402.ERROR_CODE],
@@ -416,33 +429,12 @@ class DriveService:
 
     def _tick(self) -> None:
         for drive in self._drives.values():
-            self._poll(drive)
+            if not self._closing:
+                poll(drive, self._lock, self.take)
             word = safety.command_timed_out(drive, self.settings, self._lock)
             if word is not None:
                 self._notify(self.status(drive.node_id))
                 drive.objects.write({cia402.CONTROLWORD: word}, DEFAULT_TIMEOUT)
-
-    def _poll(self, drive: DriveRecord, now: bool = False) -> None:
-        """Read by SDO what no TPDO brings: every ``POLL_PERIOD``, or ``now``."""
-        with self._lock:
-            if drive.polling or not drive.heard or drive.read_done <= 0 or self._closing:
-                return
-            if not now and time.monotonic() - drive.polled < POLL_PERIOD:
-                return
-            drive.polled = time.monotonic()
-            missing = [index for index in FEEDBACK
-                       if index not in drive.objects.mapped_feedback()]
-            if not missing:
-                return
-            drive.polling = True
-
-        def done(future: Future) -> None:
-            with self._lock:
-                drive.polling = False
-            if future.result():
-                self._apply(drive, future.result(), time.monotonic())
-
-        drive.objects.read(missing, DEFAULT_TIMEOUT).add_done_callback(done)
 
     # Checks, and the way out.
 
@@ -474,7 +466,8 @@ class DriveService:
             return self._refused(node_id, f'{problem}; {checks.NOTHING_SENT}')
         with self._lock:
             drive = self._drives[node_id]
-            status, heard, closing = drive.status, drive.heard, self._closing
+            status, closing = drive.status, self._closing
+            heard = drive.heard and drive.ready == drive.read_wanted
         refusal = self._protection.refuses_write(node_id, cia402.CONTROLWORD)
         if refusal:
             return failed(status, f'{refusal}; {checks.NOTHING_SENT}', abort_codes.LOCAL_CONTROL)

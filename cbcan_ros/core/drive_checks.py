@@ -44,8 +44,8 @@ def state_problem(status: DriveStatus, heard: bool, enabled: bool) -> Optional[s
     """
     node_id = status.node_id
     if not heard or status.state == cia402.UNKNOWN:
-        return (f'node {node_id} is not heard (no heartbeat or statusword yet): state '
-                f'UNKNOWN')
+        return (f'node {node_id} is not heard (no heartbeat or statusword yet, or it is still '
+                f'being read after a boot or a silence): state {status.state}')
     if enabled and status.faulted:
         return (f'node {node_id} is in {status.state} (error 0x{status.error_code:04X} '
                 f'{status.error}): call fault_reset and enable')

@@ -6,12 +6,46 @@ on absolute deadlines, so lateness never adds up; a beat missed on a loaded mach
 skipped, not caught up in a burst.
 """
 
+from concurrent.futures import Future
 import logging
 import threading
 import time
-from typing import Callable, List
+from typing import Callable, Dict, List
+
+from .drive_objects import FEEDBACK
 
 LOGGER = logging.getLogger(__name__)
+
+# What no TPDO brings is read by SDO this often, and at once after each controlword: every
+# feedback cycle would be 250 transfers a second a drive, most of a 500 kbit/s bus for a few.
+POLL_PERIOD = 0.1
+# The timeout of those reads.
+POLL_TIMEOUT = 2.0
+
+
+def poll(drive, lock, take: Callable[[object, Dict[int, int]], None], now: bool = False) -> None:
+    """Read by SDO what no TPDO brings of a re-read drive: every ``POLL_PERIOD``, or ``now``.
+
+    ``take(drive, values)`` takes what was read; ``lock`` guards the drive record.
+    """
+    with lock:
+        if drive.polling or not drive.heard or drive.ready != drive.read_wanted:
+            return
+        if not now and time.monotonic() - drive.polled < POLL_PERIOD:
+            return
+        drive.polled = time.monotonic()
+        missing = [index for index in FEEDBACK if index not in drive.objects.mapped_feedback()]
+        if not missing:
+            return
+        drive.polling = True
+
+    def done(future: Future) -> None:
+        with lock:
+            drive.polling = False
+        if future.result():
+            take(drive, future.result())
+
+    drive.objects.read(missing, POLL_TIMEOUT).add_done_callback(done)
 
 
 class FeedbackCycle:

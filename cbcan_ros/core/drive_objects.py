@@ -140,11 +140,12 @@ class DriveObjects:
         return self._write_by_sdo(data, timeout)
 
     def read_initial(self, timeout: float) -> 'Future[Dict[int, int]]':
-        """Read what the gateway needs of a drive it now hears; keep its commanded values."""
-        values = self.read(INITIAL_READS, timeout)
-        values.add_done_callback(lambda read: self.know({
-            index: value for index, value in read.result().items() if index in COMMANDED}))
-        return values
+        """Read what the gateway needs of a drive it now hears (see ``know_commanded``)."""
+        return self.read(INITIAL_READS, timeout)
+
+    def know_commanded(self, values: Dict[int, int]) -> None:
+        """Take the commanded objects among ``values`` (an initial read) as the drive's now."""
+        self.know({index: value for index, value in values.items() if index in COMMANDED})
 
     def read(self, indexes: Iterable[int], timeout: float) -> 'Future[Dict[int, int]]':
         """Read ``indexes`` by SDO; resolves to the values read (failed ones left out)."""

@@ -31,6 +31,18 @@ SHUTDOWN_WAIT = 0.5
 CONSUMER_TIMEOUT = 2.0
 
 
+def powered(drive: DriveRecord, unseen: bool = False) -> bool:
+    """Return whether ``drive``'s power stage may be on (its lock held).
+
+    A drive heard and not re-read yet counts by what its TPDOs showed meanwhile, and with
+    ``unseen`` also when they showed nothing: a stop is harmless to a drive that is off.
+    """
+    if drive.status.state in cia402.POWERED:
+        return True
+    unread = drive.heard and drive.ready != drive.read_wanted
+    return unread and (drive.unread_state in cia402.POWERED or unseen and not drive.unread_state)
+
+
 def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
                 reason: str) -> None:
     """Send ``on_shutdown`` by SDO to every powered drive; wait for them to take it."""
@@ -38,8 +50,7 @@ def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
     if word is None:
         return
     with lock:
-        drives = [drive for drive in records
-                  if drive.heard and drive.status.state in cia402.POWERED]
+        drives = [drive for drive in records if drive.heard and powered(drive, unseen=True)]
         for drive in drives:
             drive.controlword = word
             drive.status = replace(drive.status, needs_enable=True)

@@ -77,6 +77,8 @@ class DriveRecord:
     read_wanted: int = 0  # initial reads asked for (first heard, each boot)
     read_done: int = 0  # the request the values answer; negative: that one failed
     read_failed_at: float = 0.0
+    ready: int = 0  # the initial read whose every step (stop, consumer) is done: commands go
+    unread_state: str = ''  # the state its TPDOs show while it is not re-read yet
     updates: int = 0  # statuswords taken: a waiter asks for one newer than it sent
     controlword: int = 0
     halted_by: str = ''  # '', 'command' or 'timeout'

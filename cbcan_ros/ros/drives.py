@@ -151,8 +151,11 @@ class DriveTopics:
                     return
                 changed, self._changed = self._changed, {}
             if self._refusal() is None:
-                for status in changed.values():
-                    self._states[status.node_id].publish(self._state_message(status))
+                # What the drive is now: a change told late (its notice raced a newer one
+                # from another thread) must not leave an older state published.
+                for node_id in changed:
+                    status = self._service.status(node_id)
+                    self._states[node_id].publish(self._state_message(status))
 
     def _state_message(self, status: DriveStatus) -> DriveState:
         joint = self._joints[status.node_id]
