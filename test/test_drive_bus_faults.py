@@ -6,6 +6,7 @@ Pulling the adapter cuts the gateway off in both directions, as an unplugged USB
 """
 
 from concurrent.futures import Future
+from dataclasses import replace
 import math
 import struct
 import threading
@@ -13,7 +14,7 @@ import time
 
 import pytest
 from std_msgs.msg import Float64
-from test_drives import CSV, NODE, PP, Rig, WAIT
+from test_drives import CSV, NODE, PDOS, PP, Rig, WAIT
 
 from cbcan_ros.core.nmt import NOT_DETECTED
 
@@ -28,14 +29,15 @@ CONSUMER_MS = 300
 CONSUMER_HEARTBEAT = 0x1016
 
 
-def enabled_behind_a_faulty_adapter(start_durand, watching: bool = True):
+def enabled_behind_a_faulty_adapter(start_durand, watching: bool = True, pdos=PDOS):
     """Return (rig, faults): a gateway behind the faulty adapter, its drive turning in CSV.
 
     ``watching``: the drive watches the gateway's heartbeat (and stops when cut off).
     """
     watch = {'heartbeat.node_id': OWN_ID, 'heartbeat.period': 0.1,
              'drives.consumer_time': CONSUMER_MS / 1000} if watching else {}
-    axis = Rig(start_durand, **{'can.interface': 'faulty', 'heartbeat.timeout': 0.5, **watch})
+    axis = Rig(start_durand, pdos, **{'can.interface': 'faulty', 'heartbeat.timeout': 0.5,
+                                      **watch})
     faults = FaultController.get(axis.gateway.channel)
     try:
         start_turning(axis, watching)
@@ -165,6 +167,35 @@ def test_a_drive_heard_again_takes_no_command_until_it_is_re_read(pulled):
     axis.enable(CSV)
     axis.target.publish(Float64(data=1.0))
     wait_until(lambda: axis.drive.velocity > 0, WAIT, 'the drive turning after the enable')
+
+
+def test_a_drive_found_running_is_shown_stopped_once_the_gateway_stops_it(
+        ros_context, start_durand):
+    """The stop's statusword, sent on change only, counts though the re-read is not done.
+
+    An enable that went by a state shown OPERATION_ENABLED would send nothing and leave the
+    drive in quick stop, deaf to every target.
+    """
+    on_change = tuple(replace(pdo, event_timer=0) if (pdo.kind, pdo.number) == ('tpdo', 1)
+                      else pdo for pdo in PDOS)
+    axis, faults = enabled_behind_a_faulty_adapter(start_durand, watching=False, pdos=on_change)
+    try:
+        pull(faults)
+        wait_until(lambda: axis.latest_state() == 'UNKNOWN', WAIT, 'drive_state UNKNOWN')
+        seen = len(axis.states)
+        faults.clear()  # it ran on meanwhile: nothing told it to stop
+        wait_until(lambda: axis.drive.drive_state != 'OPERATION_ENABLED', WAIT,
+                   'the gateway stopping the drive it found running')
+        wait_until(lambda: axis.latest_state() == axis.drive.drive_state, WAIT,
+                   'drive_state showing the state the drive is in')
+        shown = [message.state for message in axis.states[seen:]]
+        assert 'OPERATION_ENABLED' not in shown, f'shown running after it was stopped: {shown}'
+        axis.enable(CSV)
+        axis.target.publish(Float64(data=1.0))
+        wait_until(lambda: axis.drive.velocity > 0, WAIT, 'the drive turning after the enable')
+    finally:
+        faults.clear()
+        axis.close()
 
 
 def test_a_command_under_way_when_the_adapter_is_pulled_gets_one_answer_naming_the_fault(

@@ -37,7 +37,7 @@ from .coroutine_runner import CoroutineRunner
 from .drive_commands import DriveCommands
 from .drive_cycle import FeedbackCycle, poll
 from .drive_objects import decode, DriveObjects, FEEDBACK
-from .drive_status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed
+from .drive_status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed, shown
 from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED, OPERATIONAL
 from .pdo_mapping import ReceivedPdo
 from .request_queue import resolved
@@ -99,14 +99,14 @@ class DriveService:
         self._cycle.add_listener(listener)
 
     def status(self, node_id: int) -> DriveStatus:
-        """Return what is known of drive ``node_id`` now."""
+        """Return what is known of drive ``node_id`` now: UNKNOWN until it is re-read."""
         with self._lock:
-            return self._drives[node_id].status
+            return shown(self._drives[node_id])
 
     def statuses(self) -> List[DriveStatus]:
         """Return every drive's status, by node id."""
         with self._lock:
-            return [drive.status for drive in self._drives.values()]
+            return [shown(drive) for drive in self._drives.values()]
 
     def command_timeouts(self, node_id: int) -> int:
         """Return how often the command timeout halted drive ``node_id``."""
@@ -299,10 +299,8 @@ class DriveService:
                 drive.halted_by = ''
                 drive.status = replace(drive.status, state=cia402.UNKNOWN, needs_enable=True,
                                        halted=False)
-        if boot:
+        if boot:  # a command running ends: it sees UNKNOWN (drive_commands._until)
             self._notify(self.status(drive.node_id))
-            self._runner.call_soon(lambda: self._commands.cancel(
-                drive, f'node {drive.node_id} booted during the command: enable it afresh'))
             self._wake(drive)
         self._runner.submit(self._initial_read(drive, request))
 
@@ -328,17 +326,20 @@ class DriveService:
                     drive, self._lock, 'stopped heartbeating while powered'))
 
     def _apply(self, drive: DriveRecord, values: Dict[int, int], stamp: float,
-               reread: bool = False) -> None:
+               reread: int = 0) -> None:
         """Take feedback values of ``drive``: update its status, wake what waits, tell.
 
-        Until its re-read is done, only that read's values (``reread``), told at its end.
+        Until its re-read (number ``reread``) is in, only that read's values; until the
+        re-read is done, nothing is told (it is told at its end).
         """
         with self._lock:
             old = drive.status
-            if not drive.heard or (drive.ready != drive.read_wanted and not reread):
+            if not drive.heard or (drive.read_done != drive.read_wanted
+                                   and reread != drive.read_wanted):
                 if drive.heard and cia402.STATUSWORD in values:  # the re-read will decide
                     drive.unread_state = cia402.state_of(values[cia402.STATUSWORD])
                 return
+            told = drive.ready == drive.read_wanted  # else told once the re-read is done
             statusword = values.get(cia402.STATUSWORD, old.statusword)
             state = cia402.state_of(statusword) if cia402.STATUSWORD in values else old.state
             new = replace(old, statusword=statusword, state=state,
@@ -361,7 +362,7 @@ class DriveService:
                 new.state, new.mode, new.error_code, new.target_reached)
         if new.faulted and not old.faulted:
             self._runner.submit(self._read_error(drive))
-        if changed and not reread:
+        if changed and told:
             self._notify(new)
         if cia402.STATUSWORD in values or changed:
             self._wake(drive)
@@ -406,11 +407,10 @@ class DriveService:
                            'later heartbeat', drive.node_id)
             return
         self._apply(drive, {index: values[index] for index in (*FEEDBACK, cia402.ERROR_CODE)
-                            if index in values}, time.monotonic(), reread=True)
-        if self.status(drive.node_id).state == cia402.OPERATION_ENABLED:
-            await safety.stop_unattended(drive, self._lock, 'was OPERATION_ENABLED when heard')
-        await safety.watch_the_gateway(self._sdo_batch, drive.node_id, self.settings,
-                                       self._beat_now)
+                            if index in values}, time.monotonic(), reread=request)
+        stopped = await safety.secure_heard_drive(drive, self._lock, self._sdo_batch,
+                                                  self.settings, self._beat_now)
+        self._apply(drive, stopped, time.monotonic(), reread=request)
         with self._lock:
             if request != drive.read_wanted:
                 return  # it booted meanwhile: a newer read follows
@@ -466,7 +466,7 @@ class DriveService:
             return self._refused(node_id, f'{problem}; {checks.NOTHING_SENT}')
         with self._lock:
             drive = self._drives[node_id]
-            status, closing = drive.status, self._closing
+            status, closing = shown(drive), self._closing
             heard = drive.heard and drive.ready == drive.read_wanted
         refusal = self._protection.refuses_write(node_id, cia402.CONTROLWORD)
         if refusal:

@@ -134,8 +134,9 @@ class DriveCommands:
             woken = loop.create_future()
             self._service.when_updated(drive, lambda f=woken: f.done() or f.set_result(None))
             status = self._service.status(drive.node_id)
-            if not drive.heard:
-                raise DriveFailed(f'node {drive.node_id} stopped heartbeating: state UNKNOWN')
+            if not drive.heard or status.state == cia402.UNKNOWN:  # lost, or booted
+                raise DriveFailed(f'node {drive.node_id} stopped heartbeating or booted during '
+                                  f'the command: state UNKNOWN; enable it afresh')
             if status.faulted and not fault_ok:
                 raise DriveFailed(f'node {drive.node_id} went to {status.state}: error '
                                   f'0x{status.error_code:04X} ({status.error or "reading"})',

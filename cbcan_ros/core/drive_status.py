@@ -4,7 +4,7 @@ Shared by the drive service (``drive``), its sequences (``drive_commands``) and 
 (``drive_checks``); the ROS layer reads :class:`DriveStatus` and :class:`DriveResult`.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, List, Tuple
 
 from . import cia402
@@ -94,3 +94,10 @@ class DriveRecord:
 def failed(status: DriveStatus, message: str, abort_code: int = 0) -> DriveResult:
     """Return the failed answer ``message`` for a drive whose status is ``status``."""
     return DriveResult(False, message, status, abort_code)
+
+
+def shown(drive: DriveRecord) -> DriveStatus:
+    """Return the status callers see (its lock held): UNKNOWN until the re-read is done."""
+    if drive.ready == drive.read_wanted:
+        return drive.status
+    return replace(drive.status, state=cia402.UNKNOWN)

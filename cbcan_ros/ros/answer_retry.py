@@ -11,11 +11,13 @@ already made, so nothing is done twice on the bus: it is offered again, for up t
 
 An offer to a caller still unmatched costs the whole process that 100 ms wait (rclpy keeps
 the GIL through it), so offers are few: each answer's are spaced ``FIRST_DELAY`` doubling up
-to ``LONGEST_DELAY``, an offer dropped again (or kept waiting) pauses every offer of the
-process for ``DROPPED_PAUSE``, answers offered least go first (a caller that never matches does not
-hold up a new one), and at most ``MOST_KEPT`` are kept (the most offered given up first).
-Each episode, from the first dropped answer until none is kept, is logged: one line when it
-begins, one at its first give-up, one when it ends.
+to ``LONGEST_DELAY``; an offer dropped again (or kept waiting) pauses every offer of the
+process for ``DROPPED_PAUSE``; answers offered least go first, so a caller that never
+matches, calling now and then, does not hold up a new one (calling several times a second,
+it still can: rclpy does not say which caller an answer is for); and at most ``MOST_KEPT``
+are kept, the most offered given up first. Each episode, from the first dropped answer
+until none is kept, is logged: one line when it begins, one at its first give-up, one when
+it ends.
 """
 
 from dataclasses import dataclass, field
@@ -203,7 +205,8 @@ class AnswerRetry:
                         continue
                     now = time.monotonic()
                     if not sent or now - began > KEPT_WAITING:
-                        AnswerRetry.paused_until = now + DROPPED_PAUSE
+                        AnswerRetry.paused_until = max(AnswerRetry.paused_until,
+                                                       now + DROPPED_PAUSE)
                     if sent:
                         self._dropped.remove(dropped)
                         self._episode.late += 1

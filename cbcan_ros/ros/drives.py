@@ -21,7 +21,7 @@ import logging
 import math
 import re
 import threading
-from typing import Callable, Dict, Optional
+from typing import Callable, Dict, List, Optional
 
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -97,7 +97,7 @@ class DriveTopics:
                                     callback_group=ReentrantCallbackGroup())
         # Changes are published by a thread of their own, not by the bus thread that sees
         # them: the newest status of each drive that changed, every change covered.
-        self._changed: Dict[int, DriveStatus] = {}
+        self._changed: List[DriveStatus] = []  # every change told, in order
         self._wake = threading.Condition()
         self._closing = False
         self._thread = threading.Thread(target=self._publish_changes, name='drive states',
@@ -139,7 +139,7 @@ class DriveTopics:
 
     def _on_change(self, status: DriveStatus) -> None:
         with self._wake:
-            self._changed[status.node_id] = status
+            self._changed.append(status)
             self._wake.notify()
 
     def _publish_changes(self) -> None:
@@ -149,13 +149,18 @@ class DriveTopics:
                     self._wake.wait()
                 if self._closing:
                     return
-                changed, self._changed = self._changed, {}
+                changed, self._changed = self._changed, []
             if self._refusal() is None:
-                # What the drive is now: a change told late (its notice raced a newer one
-                # from another thread) must not leave an older state published.
-                for node_id in changed:
-                    status = self._service.status(node_id)
-                    self._states[node_id].publish(self._state_message(status))
+                last = {}
+                for status in changed:
+                    self._states[status.node_id].publish(self._state_message(status))
+                    last[status.node_id] = status
+                # Changes are told from several threads: one told late (after a newer one)
+                # must not leave an older state published last.
+                for node_id, status in last.items():
+                    now = self._service.status(node_id)
+                    if _told(now) != _told(status):
+                        self._states[node_id].publish(self._state_message(now))
 
     def _state_message(self, status: DriveStatus) -> DriveState:
         joint = self._joints[status.node_id]
@@ -296,3 +301,9 @@ class DriveTopics:
         return DriveMove.Result(success=result.success, message=result.message,
                                 position=float(joint.position(result.status.position)),
                                 error_code=result.status.error_code)
+
+
+def _told(status: DriveStatus) -> tuple:
+    """Return what a change of which is told (and published) of a drive."""
+    return (status.state, status.mode, status.error_code, status.target_reached,
+            status.halted)
