@@ -408,9 +408,8 @@ class DriveService:
             return
         self._apply(drive, {index: values[index] for index in (*FEEDBACK, cia402.ERROR_CODE)
                             if index in values}, time.monotonic(), reread=request)
-        stopped = await safety.secure_heard_drive(drive, self._lock, self._sdo_batch,
-                                                  self.settings, self._beat_now)
-        self._apply(drive, stopped, time.monotonic(), reread=request)
+        await safety.secure_heard_drive(drive, self._lock, self._sdo_batch, self.settings,
+                                        self._beat_now)
         with self._lock:
             if request != drive.read_wanted:
                 return  # it booted meanwhile: a newer read follows

@@ -16,7 +16,7 @@ from dataclasses import replace
 import logging
 import struct
 import time
-from typing import Callable, Dict, Iterable, Optional
+from typing import Callable, Iterable, Optional
 
 from . import cia402
 from .drive_status import DriveRecord, DriveSettings
@@ -93,24 +93,19 @@ async def stop_unattended(drive: DriveRecord, lock, why: str) -> None:
 
 
 async def secure_heard_drive(drive: DriveRecord, lock, sdo_batch, settings: DriveSettings,
-                             beat_now: Callable[[], None]) -> Dict[int, int]:
+                             beat_now: Callable[[], None]) -> None:
     """Quick-stop ``drive`` if it was found running, then have it watch the gateway.
 
-    The last steps of a re-read. Returns its statusword read after a stop (else nothing): its
-    TPDO of that change may come after the re-read is done, or never (sent on change).
+    The last steps of a re-read; its TPDOs count meanwhile (the stop's statusword among them).
     """
-    values: Dict[int, int] = {}
     try:
         with lock:
             running = drive.status.state == cia402.OPERATION_ENABLED
         if running:
             await stop_unattended(drive, lock, 'was OPERATION_ENABLED when heard')
-            values = await asyncio.wrap_future(drive.objects.read([cia402.STATUSWORD],
-                                                                  CONSUMER_TIMEOUT))
         await watch_the_gateway(sdo_batch, drive.node_id, settings, beat_now)
     except Exception as error:  # noqa: BLE001 - the drive is read; say what failed
         LOGGER.error('drive %d: its re-read could not finish (%r)', drive.node_id, error)
-    return values
 
 
 def command_timed_out(drive: DriveRecord, settings: DriveSettings, lock) -> Optional[int]:
