@@ -51,6 +51,14 @@ class _Middleware:
             self.delivered.append((response, header))
 
 
+def never_matching(monkeypatch, window: float):
+    """Return (middleware, retry, answer): a service whose callers DDS never matches."""
+    monkeypatch.setattr(answer_retry, 'RETRY_WINDOW', window)
+    middleware = _Middleware(drops=10 ** 6)
+    retry = AnswerRetry()
+    return middleware, retry, retry.sender(_Service(), middleware.send_response)
+
+
 def lines(caplog, text: str) -> list:
     """Return the log lines containing ``text``."""
     return [r.getMessage() for r in caplog.records if text in r.getMessage()]
@@ -76,10 +84,7 @@ def test_a_dropped_answer_is_offered_again_until_it_leaves_once(caplog):
 
 def test_an_answer_still_dropped_when_its_window_ends_is_given_up_after_few_offers(
         caplog, monkeypatch):
-    monkeypatch.setattr(answer_retry, 'RETRY_WINDOW', 2.0)
-    middleware = _Middleware(drops=10 ** 6)
-    retry = AnswerRetry()
-    answer = retry.sender(_Service(), middleware.send_response)
+    middleware, retry, answer = never_matching(monkeypatch, 2.0)
     with caplog.at_level(logging.INFO):
         answer('the answer', 'its header')
         wait_until(lambda: not retry.waiting, 10.0, 'the answer given up')
@@ -95,10 +100,7 @@ def test_an_answer_still_dropped_when_its_window_ends_is_given_up_after_few_offe
 
 
 def test_offers_to_callers_still_unmatched_are_spaced_whatever_their_number(monkeypatch):
-    monkeypatch.setattr(answer_retry, 'RETRY_WINDOW', 1.5)
-    middleware = _Middleware(drops=10 ** 6)
-    retry = AnswerRetry()
-    answer = retry.sender(_Service(), middleware.send_response)
+    middleware, retry, answer = never_matching(monkeypatch, 1.5)
     for number in range(8):
         answer(f'answer {number}', number)
     first_offers = len(middleware.offers)
@@ -111,10 +113,7 @@ def test_offers_to_callers_still_unmatched_are_spaced_whatever_their_number(monk
 
 def test_close_gives_up_what_is_kept_after_at_most_one_offer_in_progress(
         caplog, monkeypatch):
-    monkeypatch.setattr(answer_retry, 'RETRY_WINDOW', 60.0)
-    middleware = _Middleware(drops=10 ** 6)
-    retry = AnswerRetry()
-    answer = retry.sender(_Service(), middleware.send_response)
+    middleware, retry, answer = never_matching(monkeypatch, 60.0)
     with caplog.at_level(logging.INFO):
         for number in range(answer_retry.MOST_KEPT + 5):
             answer(f'answer {number}', number)
@@ -135,10 +134,7 @@ def test_close_gives_up_what_is_kept_after_at_most_one_offer_in_progress(
 
 
 def test_a_new_dropped_answer_is_offered_before_those_offered_many_times(monkeypatch):
-    monkeypatch.setattr(answer_retry, 'RETRY_WINDOW', 60.0)
-    middleware = _Middleware(drops=10 ** 6)
-    retry = AnswerRetry()
-    answer = retry.sender(_Service(), middleware.send_response)
+    middleware, retry, answer = never_matching(monkeypatch, 60.0)
     for number in range(5):  # a caller that never matches, calling again and again
         answer(f'unmatched {number}', number)
     wait_until(lambda: len(middleware.offers) >= 5 + 3 * 5, 30.0, 'each offered again thrice')
