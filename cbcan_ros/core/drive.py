@@ -358,8 +358,7 @@ class DriveService:
             drive.status = new
             if cia402.STATUSWORD in values:
                 drive.updates += 1
-            changed = (old.state, old.mode, old.error_code, old.target_reached) != (
-                new.state, new.mode, new.error_code, new.target_reached)
+            changed = old.told != new.told
         if new.faulted and not old.faulted:
             self._runner.submit(self._read_error(drive))
         if changed and told:

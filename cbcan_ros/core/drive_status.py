@@ -51,6 +51,11 @@ class DriveStatus:
         return bool(self.statusword & cia402.TARGET_REACHED)
 
     @property
+    def told(self) -> tuple:
+        """Return the fields a change of which is told (and published): state, mode, error."""
+        return (self.state, self.mode, self.error_code, self.target_reached, self.halted)
+
+    @property
     def faulted(self) -> bool:
         """Return whether the drive is in FAULT or its fault reaction."""
         return self.state in cia402.FAULTED

@@ -96,8 +96,8 @@ class DriveTopics:
                                     cancel_callback=self._on_cancel,
                                     callback_group=ReentrantCallbackGroup())
         # Changes are published by a thread of their own, not by the bus thread that sees
-        # them: the newest status of each drive that changed, every change covered.
-        self._changed: List[DriveStatus] = []  # every change told, in order
+        # them: every change told, in order, then the newest if one was told late.
+        self._changed: List[DriveStatus] = []
         self._wake = threading.Condition()
         self._closing = False
         self._thread = threading.Thread(target=self._publish_changes, name='drive states',
@@ -159,7 +159,7 @@ class DriveTopics:
                 # must not leave an older state published last.
                 for node_id, status in last.items():
                     now = self._service.status(node_id)
-                    if _told(now) != _told(status):
+                    if now.told != status.told:
                         self._states[node_id].publish(self._state_message(now))
 
     def _state_message(self, status: DriveStatus) -> DriveState:
@@ -302,8 +302,3 @@ class DriveTopics:
                                 position=float(joint.position(result.status.position)),
                                 error_code=result.status.error_code)
 
-
-def _told(status: DriveStatus) -> tuple:
-    """Return what a change of which is told (and published) of a drive."""
-    return (status.state, status.mode, status.error_code, status.target_reached,
-            status.halted)
