@@ -40,7 +40,7 @@ from .drive_objects import decode, DriveObjects, FEEDBACK
 from .drive_status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed, shown
 from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED, OPERATIONAL
 from .pdo_mapping import ReceivedPdo
-from .request_queue import resolved
+from .request_queue import answer, resolved
 from .sdo import check_node_id
 
 LOGGER = logging.getLogger(__name__)
@@ -196,20 +196,13 @@ class DriveService:
         drive = self._drives[node_id]
         with self._lock:
             status = drive.status
-            index = cia402.TARGET_OF_MODE.get(status.mode)
-            if index is None:
-                return failed(status, f'node {node_id} is in {cia402.mode_name(status.mode)}, '
-                                       f'which takes no target; nothing was sent')
-            if drive.halted_by == 'command':
-                return failed(status, f'node {node_id} was halted by a halt command: call '
-                                       f'resume first; nothing was sent')
+            problem = checks.target_problem(status, drive.halted_by, value)
+            if problem:
+                return failed(status, problem)
+            index = cia402.TARGET_OF_MODE[status.mode]
             refusal = self._protection.refuses_write(node_id, index)
             if refusal:
                 return failed(status, refusal, abort_codes.LOCAL_CONTROL)
-            bits = 32 if index != cia402.TARGET_TORQUE else 16
-            problem = checks.value_problem('target', value, bits)
-            if problem:
-                return failed(status, f'{problem}; {checks.NOTHING_SENT}')
             drive.last_target = time.monotonic()
         if status.mode == cia402.PROFILE_POSITION:
             self._runner.call_soon(lambda: self._commands.set_point(drive, round(value)))
@@ -241,7 +234,7 @@ class DriveService:
 
     def request_feedback(self, drive: DriveRecord) -> None:
         """Read by SDO at once what no TPDO brings (after an SDO controlword, say)."""
-        poll(drive, self._lock, self.take, now=True)
+        poll(drive, self._lock, self.read_feedback, now=True)
 
     def set_halted(self, drive: DriveRecord, by: str) -> None:
         """Record who halted the drive ('' = nobody), and show it."""
@@ -259,9 +252,18 @@ class DriveService:
             drive.status = replace(drive.status, needs_enable=not enabled)
             drive.last_target = time.monotonic()
 
-    def take(self, drive: DriveRecord, values: Dict[int, int]) -> None:
-        """Take values read by SDO as the drive's feedback."""
-        self._apply(drive, values, time.monotonic())
+    def read_feedback(self, drive: DriveRecord, indexes: List[int],
+                      timeout: float) -> 'Future[Dict[int, int]]':
+        """Read ``indexes`` by SDO and take them (``DriveRecord.newest``); then resolve."""
+        with self._lock:
+            since = drive.tpdos
+        done: Future = Future()
+
+        def taken(read: Future) -> None:
+            self._apply(drive, read.result(), time.monotonic(), since=since)
+            answer(done, read.result())
+        drive.objects.read(indexes, timeout).add_done_callback(taken)
+        return done
 
     # Frames and node states, from the bus thread.
 
@@ -275,6 +277,8 @@ class DriveService:
                   for decoded in received.entries
                   if decoded.entry.index in FEEDBACK and decoded.entry.subindex == 0}
         if values:
+            with self._lock:
+                drive.took_tpdo(values)
             self._apply(drive, values, received.timestamp)
 
     @prompt
@@ -326,13 +330,16 @@ class DriveService:
                     drive, self._lock, 'stopped heartbeating while powered'))
 
     def _apply(self, drive: DriveRecord, values: Dict[int, int], stamp: float,
-               reread: int = 0) -> None:
+               reread: int = 0, since: Optional[int] = None) -> None:
         """Take feedback values of ``drive``: update its status, wake what waits, tell.
 
         Until its re-read (number ``reread``) is in, only that read's values; until the
-        re-read is done, nothing is told (it is told at its end).
+        re-read is done, nothing is told (it is told at its end). ``since``: the values were
+        read by SDO, asked after that many TPDOs; what later TPDOs brought is newer.
         """
         with self._lock:
+            if since is not None:
+                values = drive.newest(values, since, bool(reread))
             old = drive.status
             if not drive.heard or (drive.read_done != drive.read_wanted
                                    and reread != drive.read_wanted):
@@ -390,6 +397,8 @@ class DriveService:
     # The drives' loop: reads when heard, the error code of a fault.
 
     async def _initial_read(self, drive: DriveRecord, request: int) -> None:
+        with self._lock:
+            since = drive.tpdos
         values = await asyncio.wrap_future(drive.objects.read_initial(DEFAULT_TIMEOUT))
         with self._lock:
             if request != drive.read_wanted:
@@ -406,7 +415,7 @@ class DriveService:
                            'later heartbeat', drive.node_id)
             return
         self._apply(drive, {index: values[index] for index in (*FEEDBACK, cia402.ERROR_CODE)
-                            if index in values}, time.monotonic(), reread=request)
+                            if index in values}, time.monotonic(), reread=request, since=since)
         await safety.secure_heard_drive(drive, self._lock, self._sdo_batch, self.settings,
                                         self._beat_now)
         with self._lock:
@@ -416,9 +425,8 @@ class DriveService:
         self._notify(self.status(drive.node_id))
 
     async def _read_error(self, drive: DriveRecord) -> None:
-        values = await asyncio.wrap_future(drive.objects.read([cia402.ERROR_CODE],
-                                                              DEFAULT_TIMEOUT))
-        self.take(drive, values)
+        await asyncio.wrap_future(self.read_feedback(drive, [cia402.ERROR_CODE],
+                                                     DEFAULT_TIMEOUT))
         status = self.status(drive.node_id)
         LOGGER.error('drive %d FAULT: error code 0x%04X (%s); targets are refused until '
                      'fault_reset and enable', drive.node_id, status.error_code, status.error)
@@ -428,7 +436,7 @@ class DriveService:
     def _tick(self) -> None:
         for drive in self._drives.values():
             if not self._closing:
-                poll(drive, self._lock, self.take)
+                poll(drive, self._lock, self.read_feedback)
             word = safety.command_timed_out(drive, self.settings, self._lock)
             if word is not None:
                 self._notify(self.status(drive.node_id))

@@ -68,6 +68,19 @@ def command_problem(status: DriveStatus, command: str, mode: int) -> Optional[st
     return None
 
 
+def target_problem(status: DriveStatus, halted_by: str, value: float) -> Optional[str]:
+    """Return why ``value`` cannot go out as the target of the drive's present mode, or None."""
+    index = cia402.TARGET_OF_MODE.get(status.mode)
+    if index is None:
+        return (f'node {status.node_id} is in {cia402.mode_name(status.mode)}, which takes no '
+                f'target; {NOTHING_SENT}')
+    if halted_by == 'command':
+        return (f'node {status.node_id} was halted by a halt command: call resume first; '
+                f'{NOTHING_SENT}')
+    problem = value_problem('target', value, 16 if index == cia402.TARGET_TORQUE else 32)
+    return f'{problem}; {NOTHING_SENT}' if problem else None
+
+
 def value_problem(name: str, value: float, bits: int) -> Optional[str]:
     """Return why ``value`` (drive units) cannot be sent to a signed ``bits`` object, or None."""
     if not math.isfinite(value):

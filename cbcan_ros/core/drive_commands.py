@@ -275,10 +275,8 @@ class DriveCommands:
             await self._send(drive, {cia402.CONTROLWORD: cia402.DISABLE_VOLTAGE})
         await self._send(drive, {cia402.CONTROLWORD: cia402.FAULT_RESET})
         status = await self._until(drive, lambda s: not s.faulted, fault_ok=True)
-        error = await asyncio.wrap_future(drive.objects.read([cia402.ERROR_CODE],
-                                                             SEND_TIMEOUT))
-        if cia402.ERROR_CODE in error:
-            self._service.take(drive, {cia402.ERROR_CODE: error[cia402.ERROR_CODE]})
+        await asyncio.wrap_future(self._service.read_feedback(drive, [cia402.ERROR_CODE],
+                                                              SEND_TIMEOUT))
         return (f'fault reset: node {drive.node_id} is {status.state}; enable it to move '
                 f'again')
 
@@ -322,9 +320,8 @@ class DriveCommands:
                 return f'node {drive.node_id} reached position {position} (drive units)'
 
     async def _read_position(self, drive) -> None:
-        read = await asyncio.wrap_future(drive.objects.read([cia402.POSITION_ACTUAL],
-                                                            SEND_TIMEOUT))
-        self._service.take(drive, read)
+        await asyncio.wrap_future(self._service.read_feedback(drive, [cia402.POSITION_ACTUAL],
+                                                              SEND_TIMEOUT))
 
     async def _stream(self, drive) -> str:
         await self._change_to_pp(drive)

@@ -10,7 +10,7 @@ from concurrent.futures import Future
 import logging
 import threading
 import time
-from typing import Callable, Dict, List
+from typing import Callable, List
 
 from .drive_objects import FEEDBACK
 
@@ -23,10 +23,12 @@ POLL_PERIOD = 0.1
 POLL_TIMEOUT = 2.0
 
 
-def poll(drive, lock, take: Callable[[object, Dict[int, int]], None], now: bool = False) -> None:
+def poll(drive, lock, read_feedback: Callable[[object, List[int], float], Future],
+         now: bool = False) -> None:
     """Read by SDO what no TPDO brings of a re-read drive: every ``POLL_PERIOD``, or ``now``.
 
-    ``take(drive, values)`` takes what was read; ``lock`` guards the drive record.
+    ``read_feedback(drive, indexes, timeout)`` reads and takes them (the drive service's);
+    ``lock`` guards the drive record.
     """
     with lock:
         if drive.polling or not drive.heard or drive.ready != drive.read_wanted:
@@ -39,13 +41,11 @@ def poll(drive, lock, take: Callable[[object, Dict[int, int]], None], now: bool 
             return
         drive.polling = True
 
-    def done(future: Future) -> None:
+    def done(_taken: Future) -> None:
         with lock:
             drive.polling = False
-        if future.result():
-            take(drive, future.result())
 
-    drive.objects.read(missing, POLL_TIMEOUT).add_done_callback(done)
+    read_feedback(drive, missing, POLL_TIMEOUT).add_done_callback(done)
 
 
 class FeedbackCycle:

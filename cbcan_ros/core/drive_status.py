@@ -5,7 +5,7 @@ Shared by the drive service (``drive``), its sequences (``drive_commands``) and 
 """
 
 from dataclasses import dataclass, field, replace
-from typing import Callable, List, Tuple
+from typing import Callable, Dict, List, Tuple
 
 from . import cia402
 from .drive_objects import DriveObjects
@@ -85,6 +85,8 @@ class DriveRecord:
     ready: int = 0  # the initial read whose every step (stop, consumer) is done: commands go
     unread_state: str = ''  # the state its TPDOs show while it is not re-read yet
     updates: int = 0  # statuswords taken: a waiter asks for one newer than it sent
+    tpdos: int = 0  # TPDOs with feedback taken: an SDO read asked after the n-th is newer
+    from_tpdo: Dict[int, Tuple[int, int]] = field(default_factory=dict)  # index: (n, value)
     controlword: int = 0
     halted_by: str = ''  # '', 'command' or 'timeout'
     last_target: float = 0.0
@@ -94,6 +96,24 @@ class DriveRecord:
     emcy_code: int = 0  # the error code of the last EMCY
     lost_powered: bool = False  # its heartbeat stopped while its power stage was on
     waiters: List[Callable[[], None]] = field(default_factory=list)
+
+    def took_tpdo(self, values: Dict[int, int]) -> None:
+        """Count a TPDO that brought feedback ``values`` (its lock held)."""
+        self.tpdos += 1
+        self.from_tpdo.update({index: (self.tpdos, value) for index, value in values.items()})
+
+    def newest(self, values: Dict[int, int], since: int, reread: bool) -> Dict[int, int]:
+        """Return ``values`` read by SDO, asked after ``since`` TPDOs, as the newest known.
+
+        An SDO answer is taken on an SDO thread, and may come after a TPDO sent later: what
+        TPDOs brought since it was asked is newer and stays. A re-read takes it in (those
+        TPDOs waited for the read). Its lock held.
+        """
+        newer = {index: value for index, (taken, value) in self.from_tpdo.items()
+                 if taken > since}
+        if reread:
+            return {**values, **newer}
+        return {index: value for index, value in values.items() if index not in newer}
 
 
 def failed(status: DriveStatus, message: str, abort_code: int = 0) -> DriveResult:
