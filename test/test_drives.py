@@ -17,6 +17,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
 from cbcan_ros.action import DriveMove
+from cbcan_ros.core.nmt import OPERATIONAL
 from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.simulation.durand_drive import DurandDrive
@@ -204,6 +205,32 @@ def test_a_streaming_drive_without_targets_is_halted_and_the_next_target_resumes
     assert axis.drive.statusword & 0x100  # the drive shows the halt itself
     axis.target.publish(Float64(data=0.7))
     wait_until(lambda: axis.drive.velocity == 700, WAIT, 'the drive moving again')
+
+
+def test_a_target_sent_just_as_the_command_timeout_halts_cannot_undo_the_halt(rig):
+    # In CSP the target position goes in RPDO 1 with the controlword. The caller's thread is
+    # preempted between building that frame (controlword: run) and sending it, for longer
+    # than the command timeout. Once a defect: the halt went out meanwhile and the late frame
+    # undid it; the caller fell silent, drive_state said halted, and the drive ran on.
+    axis = rig(**{'drives.command_timeout': 0.3})
+    gateway = axis.gateway.node.gateway
+    wait_until(lambda: gateway.monitor.status(NODE).state == OPERATIONAL
+               and 1 in gateway.pdo.mappings(NODE)[1], WAIT,
+               'the drive heard OPERATIONAL, its RPDO 1 read: targets go in it')
+    axis.enable(CSP)
+    send, caller, other_sent = gateway.pdo._send, threading.get_ident(), threading.Event()
+
+    def preempted(mapping, frame):
+        if threading.get_ident() == caller:
+            other_sent.wait(1.0)  # the halt, if it can go before this frame
+        result = send(mapping, frame)
+        if threading.get_ident() != caller:
+            other_sent.set()
+        return result
+    gateway.pdo._send = preempted
+    assert gateway.drives.target(NODE, 100).success  # then silence
+    wait_until(lambda: axis.states[-1].halted, WAIT, 'drive_state halted')
+    wait_until(lambda: axis.drive.statusword & 0x100, WAIT, 'the drive halted, as shown')
 
 
 def test_position_targets_in_pp_are_new_set_points_applied_at_once(rig):

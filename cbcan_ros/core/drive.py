@@ -194,27 +194,29 @@ class DriveService:
         if refused is not None:
             return refused
         drive = self._drives[node_id]
-        with self._lock:
-            status = drive.status
-            problem = checks.target_problem(status, drive.halted_by, value)
-            if problem:
-                return failed(status, problem)
-            index = cia402.TARGET_OF_MODE[status.mode]
-            refusal = self._protection.refuses_write(node_id, index)
-            if refusal:
-                return failed(status, refusal, abort_codes.LOCAL_CONTROL)
-            drive.last_target = time.monotonic()
-        if status.mode == cia402.PROFILE_POSITION:
-            self._runner.call_soon(lambda: self._commands.set_point(drive, round(value)))
-            return DriveResult(True, 'set-point handed to the drive', status)
-        values = {index: round(value)}
-        with self._lock:
-            if drive.halted_by:  # by the command timeout or a cancelled move: a target resumes
-                drive.halted_by = ''
-                drive.controlword &= ~cia402.HALT
-                values[cia402.CONTROLWORD] = drive.controlword
-                drive.status = replace(drive.status, halted=False)
-        sent = drive.objects.write(values, self.settings.feedback_period * 10 or 0.5)
+        with drive.sending:
+            with self._lock:
+                status = drive.status
+                problem = (f'{SHUTTING_DOWN}; {checks.NOTHING_SENT}' if self._closing
+                           else checks.target_problem(status, drive.halted_by, value))
+                if problem:
+                    return failed(status, problem)
+                index = cia402.TARGET_OF_MODE[status.mode]
+                refusal = self._protection.refuses_write(node_id, index)
+                if refusal:
+                    return failed(status, refusal, abort_codes.LOCAL_CONTROL)
+                drive.last_target = time.monotonic()
+                values = {index: round(value)}
+                if drive.halted_by and status.mode != cia402.PROFILE_POSITION:
+                    # Halted by the command timeout or a cancelled move: a target resumes it.
+                    drive.halted_by = ''
+                    drive.controlword &= ~cia402.HALT
+                    values[cia402.CONTROLWORD] = drive.controlword
+                    drive.status = replace(drive.status, halted=False)
+            if status.mode == cia402.PROFILE_POSITION:
+                self._runner.call_soon(lambda: self._commands.set_point(drive, round(value)))
+                return DriveResult(True, 'set-point handed to the drive', status)
+            sent = drive.objects.write(values, self.settings.feedback_period * 10 or 0.5)
         sent.add_done_callback(lambda done: self._log_failed_target(node_id, done))
         return DriveResult(True, 'sent', status)
 
@@ -222,10 +224,11 @@ class DriveService:
 
     def send(self, drive: DriveRecord, values: Dict[int, int], timeout: float) -> 'Future':
         """Send ``values`` to ``drive`` (the controlword kept as the drive's commanded one)."""
-        with self._lock:
-            if cia402.CONTROLWORD in values:
-                drive.controlword = values[cia402.CONTROLWORD]
-        return drive.objects.write(values, timeout)
+        with drive.sending:
+            with self._lock:
+                if cia402.CONTROLWORD in values:
+                    drive.controlword = values[cia402.CONTROLWORD]
+            return drive.objects.write(values, timeout)
 
     def when_updated(self, drive: DriveRecord, wake: Callable[[], None]) -> None:
         """Call ``wake()`` on the drives' loop at the next statusword or loss of ``drive``."""
@@ -437,10 +440,8 @@ class DriveService:
         for drive in self._drives.values():
             if not self._closing:
                 poll(drive, self._lock, self.read_feedback)
-            word = safety.command_timed_out(drive, self.settings, self._lock)
-            if word is not None:
+            if safety.halt_if_timed_out(drive, self.settings, self._lock, lambda: self._closing):
                 self._notify(self.status(drive.node_id))
-                drive.objects.write({cia402.CONTROLWORD: word}, DEFAULT_TIMEOUT)
 
     # Checks, and the way out.
 

@@ -113,7 +113,9 @@ class DriveObjects:
     def write(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':
         """Send ``values`` (object: value) to the drive; resolves when all went out or why not.
 
-        Raises ValueError when a value does not fit its object (nothing is sent then).
+        Raises ValueError when a value does not fit its object (nothing is sent then). The
+        caller holds the drive's ``sending`` lock: frames built from ``commanded`` go out in
+        the order it changed.
         """
         data = {index: encode(index, value) for index, value in values.items()}
         with self._lock:

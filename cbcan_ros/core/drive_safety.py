@@ -3,7 +3,7 @@
 - :func:`stop_motion`: ``drives.on_shutdown`` (quick stop, disable voltage) sent by SDO to
   every powered drive, so it takes effect at once whatever the PDOs' transmission types;
   called while the gateway shuts down or a managed node is deactivated, before the bus closes.
-- :func:`command_timed_out`: a drive in a streaming mode without a new target for
+- :func:`halt_if_timed_out`: a drive in a streaming mode without a new target for
   ``drives.command_timeout`` is halted (controlword bit 8): it decelerates and holds.
 - :func:`stop_unattended`: a drive found running when it is heard (again) is quick-stopped.
 - :func:`watch_the_gateway`: the drive's heartbeat consumer (0x1016:1) set to the gateway's
@@ -16,7 +16,7 @@ from dataclasses import replace
 import logging
 import struct
 import time
-from typing import Callable, Iterable, Optional
+from typing import Callable, Iterable
 
 from . import cia402
 from .drive_status import DriveRecord, DriveSettings
@@ -29,6 +29,7 @@ ON_SHUTDOWN = {'quick_stop': cia402.QUICK_STOP, 'disable': cia402.DISABLE_VOLTAG
 # How long shutdown waits for the drives to confirm its stop commands.
 SHUTDOWN_WAIT = 0.5
 CONSUMER_TIMEOUT = 2.0
+HALT_TIMEOUT = 2.0  # of the command timeout's halt, when it goes by SDO
 
 
 def powered(drive: DriveRecord, unseen: bool = False) -> bool:
@@ -49,13 +50,16 @@ def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
     word = ON_SHUTDOWN[settings.on_shutdown]
     if word is None:
         return
-    with lock:
-        drives = [drive for drive in records if drive.heard and powered(drive, unseen=True)]
-        for drive in drives:
-            drive.controlword = word
-            drive.status = replace(drive.status, needs_enable=True)
-    sent = [(drive.node_id, drive.objects.write_by_sdo({cia402.CONTROLWORD: word},
-                                                       SHUTDOWN_WAIT)) for drive in drives]
+    sent = []
+    for drive in records:
+        with drive.sending:  # after a target or halt being sent, before any later one
+            with lock:
+                if not (drive.heard and powered(drive, unseen=True)):
+                    continue
+                drive.controlword = word
+                drive.status = replace(drive.status, needs_enable=True)
+            sent.append((drive.node_id, drive.objects.write_by_sdo(
+                {cia402.CONTROLWORD: word}, SHUTDOWN_WAIT)))
     deadline = time.monotonic() + SHUTDOWN_WAIT
     failed = []
     for node_id, future in sent:
@@ -80,10 +84,12 @@ async def stop_unattended(drive: DriveRecord, lock, why: str) -> None:
     'lost' when its heartbeat stopped while it was powered (it may still be alive, running,
     deaf only to its own heartbeat; if it is gone, the transfer times out).
     """
-    with lock:
-        drive.controlword = cia402.QUICK_STOP
-    result = await asyncio.wrap_future(drive.objects.write_by_sdo(
-        {cia402.CONTROLWORD: cia402.QUICK_STOP}, CONSUMER_TIMEOUT))
+    with drive.sending:
+        with lock:
+            drive.controlword = cia402.QUICK_STOP
+        stopped = drive.objects.write_by_sdo({cia402.CONTROLWORD: cia402.QUICK_STOP},
+                                             CONSUMER_TIMEOUT)
+    result = await asyncio.wrap_future(stopped)
     if result.success:
         LOGGER.warning('drive %d %s, commanded by nobody here: quick stop sent; enable it to '
                        'move it', drive.node_id, why)
@@ -108,28 +114,31 @@ async def secure_heard_drive(drive: DriveRecord, lock, sdo_batch, settings: Driv
         LOGGER.error('drive %d: its re-read could not finish (%r)', drive.node_id, error)
 
 
-def command_timed_out(drive: DriveRecord, settings: DriveSettings, lock) -> Optional[int]:
-    """Return the halting controlword when ``drive`` has waited too long for a target, else None.
+def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
+                      closing: Callable[[], bool]) -> bool:
+    """Halt ``drive`` if it has waited too long for a target; return whether it did.
 
-    Records the halt; the caller sends the controlword.
+    Not once the gateway is ``closing()``: its shutdown stop must be the last word.
     """
     limit = settings.command_timeout
-    with lock:
-        status = drive.status
-        if (not limit or status.state != cia402.OPERATION_ENABLED or status.needs_enable
-                or drive.halted_by or status.mode not in cia402.STREAMING_MODES
-                or time.monotonic() - drive.last_target < limit):
-            return None
-        drive.timeouts += 1
-        drive.halted_by = 'timeout'
-        drive.controlword |= cia402.HALT
-        drive.status = replace(status, halted=True)
-        word, count = drive.controlword, drive.timeouts
+    with drive.sending:
+        with lock:
+            status = drive.status
+            if (not limit or status.state != cia402.OPERATION_ENABLED or status.needs_enable
+                    or drive.halted_by or status.mode not in cia402.STREAMING_MODES
+                    or time.monotonic() - drive.last_target < limit or closing()):
+                return False
+            drive.timeouts += 1
+            drive.halted_by = 'timeout'
+            drive.controlword |= cia402.HALT
+            drive.status = replace(status, halted=True)
+            word, count = drive.controlword, drive.timeouts
+        drive.objects.write({cia402.CONTROLWORD: word}, HALT_TIMEOUT)
     # One line per drive; later halts are counted (diagnostics), not logged again.
     (LOGGER.warning if count == 1 else LOGGER.debug)(
         'drive %d: no target for %.3f s (drives.command_timeout): halted; the next target '
         'resumes it (halted this way %d times)', drive.node_id, limit, count)
-    return word
+    return True
 
 
 async def watch_the_gateway(sdo_batch, node_id: int, settings: DriveSettings,

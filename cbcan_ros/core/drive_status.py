@@ -5,6 +5,7 @@ Shared by the drive service (``drive``), its sequences (``drive_commands``) and 
 """
 
 from dataclasses import dataclass, field, replace
+import threading
 from typing import Callable, Dict, List, Tuple
 
 from . import cia402
@@ -96,6 +97,10 @@ class DriveRecord:
     emcy_code: int = 0  # the error code of the last EMCY
     lost_powered: bool = False  # its heartbeat stopped while its power stage was on
     waiters: List[Callable[[], None]] = field(default_factory=list)
+    # Held from deciding what to send (a target, a halt, a stop, a step) until it is handed
+    # to the bus: the drive gets frames in the order they were decided. Taken before the
+    # service's lock, never while holding it.
+    sending: threading.Lock = field(default_factory=threading.Lock)
 
     def took_tpdo(self, values: Dict[int, int]) -> None:
         """Count a TPDO that brought feedback ``values`` (its lock held)."""
