@@ -14,7 +14,7 @@ import time
 
 import pytest
 from std_msgs.msg import Float64
-from test_drives import CSV, NODE, PDOS, PP, Rig, WAIT
+from test_drives import CSP, CSV, NODE, PDOS, PP, Rig, WAIT
 
 from cbcan_ros.core.nmt import NOT_DETECTED
 
@@ -92,6 +92,35 @@ def hold_re_reads(axis, first=None, delay: float = 0.0) -> threading.Event:
         return late
     objects.read_initial = held
     return release
+
+
+def hold_next_answer(axis, method: str, wanted=lambda *args: True):
+    """Make the answer of the gateway's next ``method`` read of the drive late.
+
+    The read (``DriveObjects.read`` or ``read_initial``, the first call for which
+    ``wanted(*args)``) goes to the drive at once; its answer is handed to the gateway only
+    once ``release`` is set. Returns (answered, release, taken): the drive answered, let the
+    gateway have it, the gateway took it.
+    """
+    objects = axis.gateway.node.gateway.drives._drives[NODE].objects
+    answered, release, taken = threading.Event(), threading.Event(), threading.Event()
+    real = getattr(objects, method)
+
+    def held(*args):
+        if answered.is_set() or not wanted(*args):
+            return real(*args)
+        result = real(*args).result(WAIT)  # the drive's values of now
+        answered.set()
+        late = Future()
+
+        def answer():
+            if release.wait(WAIT):
+                late.set_result(result)  # taken in here, by the gateway's done callbacks
+                taken.set()
+        threading.Thread(target=answer, daemon=True).start()
+        return late
+    setattr(objects, method, held)
+    return answered, release, taken
 
 
 def pull(faults) -> None:
@@ -243,6 +272,31 @@ def test_a_drive_that_boots_during_a_move_ends_the_move_and_stays_off(ros_contex
         assert axis.drive.drive_state != 'OPERATION_ENABLED'
         refused = axis.command('halt')
         assert not refused.success and 'enable' in refused.message, refused.message
+    finally:
+        axis.close()
+
+
+def test_an_enable_under_way_when_the_drive_boots_fails_though_it_is_read_again_first(
+        ros_context, start_durand):
+    # Without a heartbeat consumer nothing of the re-read queues behind the enable's next
+    # SDO: the drive is read again and shown SWITCH_ON_DISABLED before the enable goes on.
+    # Once a defect: the enable then took it for its own and enabled the booted drive.
+    axis = Rig(start_durand)
+    try:
+        answered, release, taken = hold_next_answer(
+            axis, 'read', lambda indexes, _timeout: list(indexes) == [0x6064])
+        enabling = axis.gateway.node.gateway.drives.command(NODE, 'enable', CSP)
+        wait_until(answered.is_set, WAIT, "the enable's read of the position to hold")
+        seen = len(axis.states)
+        assert axis.gateway.call('nmt_command', node_id=NODE, command=129).success
+        wait_until(lambda: 'UNKNOWN' in [m.state for m in axis.states[seen:]]
+                   and axis.latest_state() not in (None, 'UNKNOWN'), WAIT,
+                   'the drive booted and read again')
+        release.set()
+        result = enabling.result(WAIT)
+        assert not result.success and 'booted during the command' in result.message, \
+            result.message
+        assert axis.drive.drive_state != 'OPERATION_ENABLED'
     finally:
         axis.close()
 

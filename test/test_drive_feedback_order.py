@@ -11,9 +11,7 @@ entered OPERATION_ENABLED just as the gateway saw it go OPERATIONAL was shown SW
 right after ``enable`` answered success, and refused its first target.
 """
 
-from concurrent.futures import Future
-import threading
-
+from test_drive_bus_faults import hold_next_answer
 from test_drives import NODE, rig, WAIT  # noqa: F401 - rig is a fixture used by name
 
 from cbcan_ros.core import cia402
@@ -23,35 +21,6 @@ from conftest import wait_until
 PRE_OPERATIONAL, OPERATIONAL, RESET = 128, 1, 129  # NMT commands; the drive's states:
 DRIVE_PRE_OPERATIONAL, DRIVE_OPERATIONAL = 127, 5
 ERROR = 0x2310  # continuous over-current
-
-
-def hold_next_answer(axis, method: str, wanted=lambda *args: True):
-    """Make the answer of the gateway's next ``method`` read of the drive late.
-
-    The read (``DriveObjects.read`` or ``read_initial``, the first call for which
-    ``wanted(*args)``) goes to the drive at once; its answer is handed to the gateway only
-    once ``release`` is set. Returns (answered, release, taken): the drive answered, let the
-    gateway have it, the gateway took it.
-    """
-    objects = axis.gateway.node.gateway.drives._drives[NODE].objects
-    answered, release, taken = threading.Event(), threading.Event(), threading.Event()
-    real = getattr(objects, method)
-
-    def held(*args):
-        if answered.is_set() or not wanted(*args):
-            return real(*args)
-        result = real(*args).result(WAIT)  # the drive's values of now
-        answered.set()
-        late = Future()
-
-        def answer():
-            if release.wait(WAIT):
-                late.set_result(result)  # taken in here, by the gateway's done callbacks
-                taken.set()
-        threading.Thread(target=answer, daemon=True).start()
-        return late
-    setattr(objects, method, held)
-    return answered, release, taken
 
 
 def nmt(axis, command: int, drive_state: int) -> None:

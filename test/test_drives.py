@@ -9,8 +9,10 @@ generous ceilings, never proved by sleeping.
 
 import logging
 import math
+import struct
 import threading
 
+from action_msgs.msg import GoalStatus
 import pytest
 from rclpy.action import ActionClient
 from sensor_msgs.msg import JointState
@@ -21,6 +23,7 @@ from cbcan_ros.core.nmt import OPERATIONAL
 from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.simulation.durand_drive import DurandDrive
+from cbcan_ros.simulation.durand_drive_objects import PROFILE_ACCELERATION
 from cbcan_ros.simulation.durand_drive_pdos import default_drive_pdos
 
 from conftest import Harness, new_channel, wait_for_future, wait_until
@@ -277,6 +280,32 @@ def test_cancelling_a_move_halts_the_drive_and_answers_where_it_stopped(rig):
     assert axis.drive.velocity == 0
     assert 0 < result.position < 500.0
     assert math.isclose(result.position, axis.drive.position / SCALE)
+
+
+def test_a_new_move_right_after_a_cancel_answers_the_cancelled_one_and_runs(rig):
+    # Cancel, then a new goal at once: a common client pattern. The new goal comes while
+    # the cancelled move waits for its halt (the drive decelerates for about a second here).
+    # Once a defect: the cancelled goal never got its result and stayed CANCELING.
+    axis = rig()
+    axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', 2000))
+    axis.enable(PP)
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    feedback = []
+    first = wait_for_future(axis.mover.send_goal_async(
+        DriveMove.Goal(node_id=NODE, position=500.0, velocity=2.0),
+        feedback_callback=feedback.append), WAIT)
+    wait_until(lambda: feedback and feedback[-1].feedback.velocity == 2.0, WAIT,
+               'the drive at its profile velocity')
+    wait_for_future(first.cancel_goal_async(), WAIT)
+    second = wait_for_future(axis.mover.send_goal_async(
+        DriveMove.Goal(node_id=NODE, position=0.0, velocity=50.0)), WAIT)
+    cancelled = wait_for_future(first.get_result_async(), WAIT)
+    assert cancelled.status == GoalStatus.STATUS_CANCELED
+    assert not cancelled.result.success
+    assert 'cancelled' in cancelled.result.message and 'replaced' in cancelled.result.message
+    done = wait_for_future(second.get_result_async(), WAIT).result
+    assert done.success, done.message
+    assert axis.drive.position == 0
 
 
 def test_a_new_move_replaces_the_one_running(rig):

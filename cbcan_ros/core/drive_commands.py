@@ -9,6 +9,7 @@ runs per drive: a new command, move or set-point replaces the one running, which
 """
 
 import asyncio
+import contextvars
 from typing import Callable, Dict, Optional
 
 from . import cia402
@@ -19,6 +20,8 @@ SHUTTING_DOWN = 'the gateway is shutting down'
 SEND_TIMEOUT = 1.0
 # How long a cancelled move waits for the halted axis to stand still before it answers.
 HALT_WAIT = 2.0
+# The drive's re-reads (``read_wanted``) when the running sequence started.
+READS_AT_START: contextvars.ContextVar = contextvars.ContextVar('reads_at_start')
 
 
 class DriveFailed(Exception):
@@ -99,6 +102,7 @@ class DriveCommands:
             previous.cancel()
         self._tasks[drive.node_id] = task
         self._tokens[task] = token
+        READS_AT_START.set(drive.read_wanted)  # this task's own context, and wait_for's
         service, node_id = self._service, drive.node_id
         try:
             if timeout:
@@ -118,7 +122,11 @@ class DriveCommands:
             reason = self._reasons.pop(task, SHUTTING_DOWN)
             if task in self._halt_when_cancelled:
                 self._halt_when_cancelled.discard(task)
-                reason = await self._halt_after_cancel(drive, reason)
+                try:
+                    reason = await self._halt_after_cancel(drive, reason)
+                except asyncio.CancelledError:  # replaced or shut down meanwhile: answered
+                    reason = (f'{reason}; {self._reasons.pop(task, SHUTTING_DOWN)} before '
+                              f'the halt was confirmed')
             return DriveResult(False, reason, service.status(node_id))
         finally:
             self._tokens.pop(task, None)
@@ -128,15 +136,21 @@ class DriveCommands:
     # Waiting and sending.
 
     async def _until(self, drive, ok: Callable, fault_ok: bool = False):
-        """Return the drive's status once ``ok(status)``; raise when it faults or is lost."""
+        """Return the drive's status once ``ok(status)``; raise when it faults or is lost.
+
+        A drive read again since the sequence started (it booted, or was heard again) is not
+        the one the sequence was asked for, whatever its state now.
+        """
         loop = asyncio.get_running_loop()
+        reads = READS_AT_START.get(drive.read_wanted)
         while True:
             woken = loop.create_future()
             self._service.when_updated(drive, lambda f=woken: f.done() or f.set_result(None))
             status = self._service.status(drive.node_id)
-            if not drive.heard or status.state == cia402.UNKNOWN:  # lost, or booted
+            if (not drive.heard or status.state == cia402.UNKNOWN
+                    or drive.read_wanted != reads):
                 raise DriveFailed(f'node {drive.node_id} stopped heartbeating or booted during '
-                                  f'the command: state UNKNOWN; enable it afresh')
+                                  f'the command: state {status.state}; enable it afresh')
             if status.faulted and not fault_ok:
                 raise DriveFailed(f'node {drive.node_id} went to {status.state}: error '
                                   f'0x{status.error_code:04X} ({status.error or "reading"})',
