@@ -207,7 +207,8 @@ class DriveService:
                     return failed(status, refusal, abort_codes.LOCAL_CONTROL)
                 drive.last_target = time.monotonic()
                 values = {index: round(value)}
-                if drive.halted_by and status.mode != cia402.PROFILE_POSITION:
+                resumed = bool(drive.halted_by) and status.mode != cia402.PROFILE_POSITION
+                if resumed:
                     # Halted by the command timeout or a cancelled move: a target resumes it.
                     drive.halted_by = ''
                     drive.controlword &= ~cia402.HALT
@@ -218,6 +219,8 @@ class DriveService:
                 return DriveResult(True, 'set-point handed to the drive', status)
             sent = drive.objects.write(values, self.settings.feedback_period * 10 or 0.5)
         sent.add_done_callback(lambda done: self._log_failed_target(node_id, done))
+        if resumed:
+            self._notify(self.status(node_id))
         return DriveResult(True, 'sent', status)
 
     # Used by the command sequences (drive_commands), on the drives' event loop.
@@ -487,14 +490,10 @@ class DriveService:
         return failed(self.status(node_id) if drive else DriveStatus(node_id), message)
 
     def _submit(self, drive: DriveRecord, coroutine) -> 'Future[DriveResult]':
-        future = self._runner.submit(coroutine)
-        if future is None:
-            return resolved(failed(self.status(drive.node_id),
-                                    f'{SHUTTING_DOWN}; nothing was sent'))
-        return future
+        return self._runner.submit(coroutine) or resolved(failed(
+            self.status(drive.node_id), f'{SHUTTING_DOWN}; {checks.NOTHING_SENT}'))
 
     def _log_failed_target(self, node_id: int, done: Future) -> None:
-        result = done.result()
-        if not result.success:
-            LOGGER.warning('drive %d: a target was not sent: %s', node_id, result.message)
+        if not done.result().success:
+            LOGGER.warning('drive %d: a target was not sent: %s', node_id, done.result().message)
 

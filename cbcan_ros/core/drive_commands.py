@@ -147,8 +147,7 @@ class DriveCommands:
             woken = loop.create_future()
             self._service.when_updated(drive, lambda f=woken: f.done() or f.set_result(None))
             status = self._service.status(drive.node_id)
-            if (not drive.heard or status.state == cia402.UNKNOWN
-                    or drive.read_wanted != reads):
+            if not drive.heard or drive.read_wanted != reads:
                 raise DriveFailed(f'node {drive.node_id} stopped heartbeating or booted during '
                                   f'the command: state {status.state}; enable it afresh')
             if status.faulted and not fault_ok:
