@@ -37,7 +37,15 @@ from .coroutine_runner import CoroutineRunner
 from .drive_commands import DriveCommands
 from .drive_cycle import FeedbackCycle, poll
 from .drive_objects import decode, DriveObjects, FEEDBACK
-from .drive_status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed, shown
+from .drive_status import (
+    DriveRecord,
+    DriveResult,
+    DriveSettings,
+    DriveStatus,
+    failed,
+    shown,
+    updated,
+)
 from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED, OPERATIONAL
 from .pdo_mapping import ReceivedPdo
 from .request_queue import answer, resolved
@@ -91,7 +99,10 @@ class DriveService:
         return list(self._drives)
 
     def add_listener(self, listener: Callable[[DriveStatus], None]) -> None:
-        """Call ``listener(status)`` on every change of a drive's state, mode, fault or halt."""
+        """Call ``listener(status)`` on every change of a drive's state, mode, fault or halt.
+
+        Called with the service's lock held (told in order): it returns at once, calls nothing.
+        """
         self._listeners.append(listener)
 
     def add_cycle_listener(self, listener: Callable[[], None]) -> None:
@@ -207,20 +218,18 @@ class DriveService:
                     return failed(status, refusal, abort_codes.LOCAL_CONTROL)
                 drive.last_target = time.monotonic()
                 values = {index: round(value)}
-                resumed = bool(drive.halted_by) and status.mode != cia402.PROFILE_POSITION
-                if resumed:
+                if drive.halted_by and status.mode != cia402.PROFILE_POSITION:
                     # Halted by the command timeout or a cancelled move: a target resumes it.
                     drive.halted_by = ''
                     drive.controlword &= ~cia402.HALT
                     values[cia402.CONTROLWORD] = drive.controlword
                     drive.status = replace(drive.status, halted=False)
+                    self._tell(drive)
             if status.mode == cia402.PROFILE_POSITION:
                 self._runner.call_soon(lambda: self._commands.set_point(drive, round(value)))
                 return DriveResult(True, 'set-point handed to the drive', status)
             sent = drive.objects.write(values, self.settings.feedback_period * 10 or 0.5)
         sent.add_done_callback(lambda done: self._log_failed_target(node_id, done))
-        if resumed:
-            self._notify(self.status(node_id))
         return DriveResult(True, 'sent', status)
 
     # Used by the command sequences (drive_commands), on the drives' event loop.
@@ -248,9 +257,8 @@ class DriveService:
             drive.halted_by = by
             changed = drive.status.halted != bool(by)
             drive.status = replace(drive.status, halted=bool(by))
-            status = drive.status
-        if changed:
-            self._notify(status)
+            if changed:
+                self._tell(drive)
 
     def set_enabled(self, drive: DriveRecord, enabled: bool) -> None:
         """Record that an enable succeeded (targets taken) or that a fresh one is needed."""
@@ -309,8 +317,8 @@ class DriveService:
                 drive.halted_by = ''
                 drive.status = replace(drive.status, state=cia402.UNKNOWN, needs_enable=True,
                                        halted=False)
-        if boot:  # a command running ends: it sees UNKNOWN (drive_commands._until)
-            self._notify(self.status(drive.node_id))
+                self._tell(drive)
+        if boot:  # a command running ends (drive_commands._until)
             self._wake(drive)
         self._runner.submit(self._initial_read(drive, request))
 
@@ -325,11 +333,11 @@ class DriveService:
                     drive.status = DriveStatus(drive.node_id,
                                                supported_modes=drive.status.supported_modes,
                                                position=drive.status.position)
+                    self._tell(drive)
                     lost.append(drive)
         for drive in lost:
             LOGGER.warning('drive %d stopped heartbeating: state UNKNOWN, targets refused; it '
                            'needs a fresh enable once it is heard again', drive.node_id)
-            self._notify(drive.status)
             self._wake(drive)
             if drive.lost_powered and not self._bus_down():  # it may be alive and running
                 self._runner.submit(safety.stop_unattended(
@@ -353,29 +361,15 @@ class DriveService:
                     drive.unread_state = cia402.state_of(values[cia402.STATUSWORD])
                 return
             told = drive.ready == drive.read_wanted  # else told once the re-read is done
-            statusword = values.get(cia402.STATUSWORD, old.statusword)
-            state = cia402.state_of(statusword) if cia402.STATUSWORD in values else old.state
-            new = replace(old, statusword=statusword, state=state,
-                          mode=values.get(cia402.MODE_DISPLAY, old.mode),
-                          position=values.get(cia402.POSITION_ACTUAL, old.position),
-                          velocity=values.get(cia402.VELOCITY_ACTUAL, old.velocity),
-                          torque=values.get(cia402.TORQUE_ACTUAL, old.torque),
-                          error_code=values.get(cia402.ERROR_CODE, old.error_code),
-                          received=stamp)
-            if old.state == cia402.OPERATION_ENABLED and new.state != old.state:
-                new = replace(new, needs_enable=True)  # left it by itself: enable it afresh
-            if new.faulted and not old.faulted:
-                # The EMCY the drive sent with its fault names the error until 0x603F is read.
-                new = replace(new, needs_enable=True, error_code=values.get(
-                    cia402.ERROR_CODE, drive.emcy_code or old.error_code))
+            new = updated(old, values, stamp, drive.emcy_code)
             drive.status = new
             if cia402.STATUSWORD in values:
                 drive.updates += 1
             changed = old.told != new.told
+            if changed and told:
+                self._tell(drive)
         if new.faulted and not old.faulted:
             self._runner.submit(self._read_error(drive))
-        if changed and told:
-            self._notify(new)
         if cia402.STATUSWORD in values or changed:
             self._wake(drive)
 
@@ -396,7 +390,13 @@ class DriveService:
         for wake in waiters:
             self._runner.call_soon(wake)
 
-    def _notify(self, status: DriveStatus) -> None:
+    def _tell(self, drive: DriveRecord) -> None:
+        """Tell every listener what callers see of ``drive`` now.
+
+        Called with the lock held, in the section that made the change: changes made in
+        several threads are told in the order they were made.
+        """
+        status = shown(drive)
         for listener in self._listeners:
             listener(status)
 
@@ -428,7 +428,7 @@ class DriveService:
             if request != drive.read_wanted:
                 return  # it booted meanwhile: a newer read follows
             drive.ready = request  # commands go, and its feedback counts, from now
-        self._notify(self.status(drive.node_id))
+            self._tell(drive)
 
     async def _read_error(self, drive: DriveRecord) -> None:
         await asyncio.wrap_future(self.read_feedback(drive, [cia402.ERROR_CODE],
@@ -444,7 +444,8 @@ class DriveService:
             if not self._closing:
                 poll(drive, self._lock, self.read_feedback)
             if safety.halt_if_timed_out(drive, self.settings, self._lock, lambda: self._closing):
-                self._notify(self.status(drive.node_id))
+                with self._lock:
+                    self._tell(drive)
 
     # Checks, and the way out.
 

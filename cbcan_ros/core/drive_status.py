@@ -131,3 +131,27 @@ def shown(drive: DriveRecord) -> DriveStatus:
     if drive.ready == drive.read_wanted:
         return drive.status
     return replace(drive.status, state=cia402.UNKNOWN)
+
+
+def updated(old: DriveStatus, values: Dict[int, int], stamp: float,
+            emcy_code: int) -> DriveStatus:
+    """Return the status of a drive that showed ``old`` once feedback ``values`` are in.
+
+    ``stamp``: when they were received; ``emcy_code``: the error code of the drive's last EMCY.
+    """
+    statusword = values.get(cia402.STATUSWORD, old.statusword)
+    state = cia402.state_of(statusword) if cia402.STATUSWORD in values else old.state
+    new = replace(old, statusword=statusword, state=state,
+                  mode=values.get(cia402.MODE_DISPLAY, old.mode),
+                  position=values.get(cia402.POSITION_ACTUAL, old.position),
+                  velocity=values.get(cia402.VELOCITY_ACTUAL, old.velocity),
+                  torque=values.get(cia402.TORQUE_ACTUAL, old.torque),
+                  error_code=values.get(cia402.ERROR_CODE, old.error_code),
+                  received=stamp)
+    if old.state == cia402.OPERATION_ENABLED and new.state != old.state:
+        new = replace(new, needs_enable=True)  # left it by itself: enable it afresh
+    if new.faulted and not old.faulted:
+        # The EMCY the drive sent with its fault names the error until 0x603F is read.
+        new = replace(new, needs_enable=True,
+                      error_code=values.get(cia402.ERROR_CODE, emcy_code or old.error_code))
+    return new

@@ -155,8 +155,8 @@ class DriveTopics:
                 for status in changed:
                     self._states[status.node_id].publish(self._state_message(status))
                     last[status.node_id] = status
-                # Changes are told from several threads: one told late (after a newer one)
-                # must not leave an older state published last.
+                # Changes are told in order, but an activation's snapshot (publish_states)
+                # may be queued after a newer change: the newest must be published last.
                 for node_id, status in last.items():
                     now = self._service.status(node_id)
                     if now.told != status.told:
