@@ -281,11 +281,12 @@ def test_an_enable_under_way_when_the_drive_boots_fails_though_it_is_read_again_
     # Without a heartbeat consumer nothing of the re-read queues behind the enable's next
     # SDO: the drive is read again and shown SWITCH_ON_DISABLED before the enable goes on.
     # Once a defect: the enable then took it for its own and enabled the booted drive.
+    # Nothing more goes to it: not the target that holds the axis, not the mode.
     axis = Rig(start_durand)
     try:
         answered, release, taken = hold_next_answer(
             axis, 'read', lambda indexes, _timeout: list(indexes) == [0x6064])
-        enabling = axis.gateway.node.gateway.drives.command(NODE, 'enable', CSP)
+        enabling = axis.gateway.node.gateway.drives.command(NODE, 'enable', CSP, WAIT)
         wait_until(answered.is_set, WAIT, "the enable's read of the position to hold")
         seen = len(axis.states)
         assert axis.gateway.call('nmt_command', node_id=NODE, command=129).success
@@ -296,7 +297,8 @@ def test_an_enable_under_way_when_the_drive_boots_fails_though_it_is_read_again_
         result = enabling.result(WAIT)
         assert not result.success and 'booted during the command' in result.message, \
             result.message
-        assert axis.drive.drive_state != 'OPERATION_ENABLED'
+        assert axis.drive.drive_state == 'SWITCH_ON_DISABLED'
+        assert axis.drive.value(0x6060) != bytes([CSP]), 'the mode was sent to the booted drive'
     finally:
         axis.close()
 

@@ -49,11 +49,11 @@ def test_an_sdo_answer_taken_after_a_newer_tpdo_does_not_show_the_older_state(ri
     assert shown_state(axis) == 'SWITCH_ON_DISABLED'
     nmt(axis, OPERATIONAL, DRIVE_OPERATIONAL)
     axis.drive.inject_fault(ERROR)  # its TPDO tells at once
-    wait_until(lambda: shown_state(axis) == 'FAULT', WAIT, 'the fault from the TPDO')
+    wait_until(lambda: shown_state(axis) == 'FAULT' and axis.latest_state() == 'FAULT', WAIT,
+               'the fault from the TPDO, shown and published')
     release.set()
     assert taken.wait(WAIT)
     assert shown_state(axis) == 'FAULT'
-    assert axis.latest_state() == 'FAULT'
 
 
 def test_a_change_the_drive_sends_while_it_is_being_re_read_is_not_lost(rig):  # noqa: F811
@@ -61,7 +61,7 @@ def test_a_change_the_drive_sends_while_it_is_being_re_read_is_not_lost(rig):  #
     answered, release, taken = hold_next_answer(axis, 'read_initial')
     nmt(axis, RESET, DRIVE_PRE_OPERATIONAL)  # it boots, and is re-read
     wait_until(answered.is_set, WAIT, 'the drive re-read by SDO')
-    assert axis.latest_state() == 'UNKNOWN'
+    wait_until(lambda: axis.latest_state() == 'UNKNOWN', WAIT, 'drive_state UNKNOWN')
     nmt(axis, OPERATIONAL, DRIVE_OPERATIONAL)
     axis.drive.inject_fault(ERROR)  # after the re-read's answer, before it is taken
     drive = axis.gateway.node.gateway.drives._drives[NODE]

@@ -19,11 +19,12 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
 from cbcan_ros.action import DriveMove
+from cbcan_ros.core import drive_commands
 from cbcan_ros.core.nmt import OPERATIONAL
 from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.simulation.durand_drive import DurandDrive
-from cbcan_ros.simulation.durand_drive_objects import PROFILE_ACCELERATION
+from cbcan_ros.simulation.durand_drive_objects import PROFILE_ACCELERATION, QUICK_STOP_OPTION
 from cbcan_ros.simulation.durand_drive_pdos import default_drive_pdos
 
 from conftest import Harness, new_channel, wait_for_future, wait_until
@@ -236,6 +237,51 @@ def test_a_target_sent_just_as_the_command_timeout_halts_cannot_undo_the_halt(ri
     wait_until(lambda: axis.drive.statusword & 0x100, WAIT, 'the drive halted, as shown')
 
 
+def test_a_stop_by_sdo_is_not_undone_by_a_target_waiting_for_the_sync(rig):
+    # With SYNC a CSP target waits in RPDO 1 (controlword, target position, mode) for the
+    # next SYNC, while deactivating the node stops the drive by SDO at once. Once a defect:
+    # the waiting frame went out after the stop with the controlword that ran the drive, and
+    # a drive that stays in quick stop (0x605A 5..8) took it and ran again.
+    axis = rig(pdos=default_drive_pdos(1), **{'sync.period': 0.3})
+    axis.drive.set_value(QUICK_STOP_OPTION, 0, struct.pack('<h', 6))
+    gateway = axis.gateway.node.gateway
+    wait_until(lambda: 1 in gateway.pdo.mappings(NODE)[1], WAIT, "the drive's RPDO 1 read")
+    assert axis.command('enable', CSP, timeout=WAIT).success
+    bus, frames = axis.gateway.raw_bus(), []
+
+    def after_the_stop():
+        """Return the frames since the SDO stop once two SYNCs followed it, else None."""
+        message = bus.recv(0.1)
+        if message is not None:
+            frames.append(message)
+        stop = next((n for n, m in enumerate(frames) if m.arbitration_id == 0x600 + NODE
+                     and bytes(m.data[1:4]) == bytes([0x40, 0x60, 0])), None)
+        later = frames[stop:] if stop is not None else []
+        return later if sum(m.arbitration_id == 0x80 for m in later) >= 2 else None
+    try:
+        assert gateway.drives.target(NODE, 100).success
+        gateway.drives.pause('deactivated')
+        later = wait_until(after_the_stop, WAIT, 'two SYNCs after the stop by SDO')
+    finally:
+        bus.shutdown()
+    controlwords = [struct.unpack_from('<H', m.data)[0] for m in later
+                    if m.arbitration_id == 0x200 + NODE]
+    assert all(word == 0x0002 for word in controlwords), [hex(w) for w in controlwords]
+    assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE'
+
+
+def test_enable_on_a_halted_drive_releases_the_halt_and_targets_move_it_again(rig):
+    # enable where resume was meant: the drive is already enabled, so no step of the power
+    # state machine goes out. Once a defect: the halt bit stayed in the controlword, and
+    # targets were answered "sent" while the drive stood.
+    axis = rig()
+    axis.enable(CSV)
+    assert axis.command('halt').success
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=0.5))
+    wait_until(lambda: axis.drive.velocity == 500, WAIT, 'the drive at 500 counts/s')
+
+
 def test_position_targets_in_pp_are_new_set_points_applied_at_once(rig):
     axis = rig()
     axis.enable(PP)
@@ -282,12 +328,14 @@ def test_cancelling_a_move_halts_the_drive_and_answers_where_it_stopped(rig):
     assert math.isclose(result.position, axis.drive.position / SCALE)
 
 
-def test_a_new_move_right_after_a_cancel_answers_the_cancelled_one_and_runs(rig):
+def test_a_new_move_right_after_a_cancel_answers_the_cancelled_one_and_runs(rig,
+                                                                           monkeypatch):
     # Cancel, then a new goal at once: a common client pattern. The new goal comes while
-    # the cancelled move waits for its halt (the drive decelerates for about a second here).
+    # the cancelled move waits for its halt (the drive decelerates for ten seconds here).
     # Once a defect: the cancelled goal never got its result and stayed CANCELING.
+    monkeypatch.setattr(drive_commands, 'HALT_WAIT', WAIT)
     axis = rig()
-    axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', 2000))
+    axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', 200))
     axis.enable(PP)
     assert axis.mover.wait_for_server(timeout_sec=10.0)
     feedback = []

@@ -29,11 +29,12 @@ import threading
 import time
 from typing import Callable, Dict, List, Optional, Tuple
 
-from . import abort_codes, cia402
+from . import cia402
 from . import drive_checks as checks
 from . import drive_safety as safety
 from .bus import prompt
 from .coroutine_runner import CoroutineRunner
+from .drive_checks import SHUTTING_DOWN
 from .drive_commands import DriveCommands
 from .drive_cycle import FeedbackCycle, poll
 from .drive_objects import decode, DriveObjects, FEEDBACK
@@ -49,11 +50,9 @@ from .drive_status import (
 from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED, OPERATIONAL
 from .pdo_mapping import ReceivedPdo
 from .request_queue import answer, resolved
-from .sdo import check_node_id
 
 LOGGER = logging.getLogger(__name__)
 
-SHUTTING_DOWN = 'the gateway is shutting down'
 # A command's time unless its caller says: a transition takes ms, homing as long as it travels.
 DEFAULT_TIMEOUT = 2.0
 HOMING_TIMEOUT = 60.0
@@ -76,7 +75,6 @@ class DriveService:
                  beat_now: Callable[[], None] = lambda: None):
         self.settings, self._network, self._monitor = settings, network, monitor
         self._sdo_batch, self._beat_now = sdo_batch, beat_now
-        self._protection = write_protection
         self._bus_down = bus_down
         self._lock = threading.RLock()
         self._drives = {
@@ -88,6 +86,8 @@ class DriveService:
         self._runner = CoroutineRunner('drives')
         self._commands = DriveCommands(self)
         self._closing = False
+        self._checks = checks.RequestChecks(self._drives, self._lock, write_protection,
+                                            bus_down, lambda: self._closing)
         self._cycle = FeedbackCycle(settings.feedback_period, self._tick)
         if self._drives:
             pdo.add_listener(self._on_pdo)
@@ -165,12 +165,13 @@ class DriveService:
         A command replaces one still running on the same drive (answered "replaced"). Never
         raises; a request that cannot be run is answered at once, nothing sent.
         """
-        refused = self._command_refusal(node_id, command, mode, timeout)
+        reads = self._reads(node_id)
+        refused = self._checks.command(node_id, command, mode, timeout)
         if refused is not None:
             return resolved(refused)
         drive = self._drives[node_id]
         limit = timeout or (HOMING_TIMEOUT if command == 'home' else DEFAULT_TIMEOUT)
-        return self._submit(drive, self._commands.run(drive, command, mode, limit))
+        return self._submit(drive, self._commands.run(drive, command, mode, limit, reads))
 
     def move(self, node_id: int, position: int, relative: bool = False, velocity: int = 0,
              on_feedback: Optional[Callable[[DriveStatus], None]] = None
@@ -180,16 +181,13 @@ class DriveService:
         Succeeds on the drive's target reached at the goal; ``cancel()`` halts the drive and
         answers where it stopped. A new move or target for the drive replaces this one.
         """
-        refused = self._drive_refusal(node_id, enabled=True)
-        if refused is None:
-            problem = (checks.integer_problem('position', position, 32)
-                       or checks.integer_problem('velocity', velocity, 32, unsigned=True))
-            refused = problem and failed(self.status(node_id), f'{problem}; {checks.NOTHING_SENT}')
+        reads = self._reads(node_id)
+        refused = self._checks.move(node_id, position, velocity)
         if refused:
             return resolved(refused), lambda: None
         drive, token = self._drives[node_id], object()
         future = self._submit(drive, self._commands.move(drive, position, relative, velocity,
-                                                         on_feedback, token))
+                                                         on_feedback, token, reads))
         return future, lambda: self._runner.call_soon(
             lambda: self._commands.cancel(drive, 'cancelled', halt=True, token=token))
 
@@ -201,7 +199,8 @@ class DriveService:
         (nothing sent) when the drive is not enabled, faulted, halted by a halt command, or
         the value does not fit.
         """
-        refused = self._drive_refusal(node_id, enabled=True)
+        reads = self._reads(node_id)
+        refused = self._checks.drive(node_id, enabled=True)
         if refused is not None:
             return refused
         drive = self._drives[node_id]
@@ -213,9 +212,9 @@ class DriveService:
                 if problem:
                     return failed(status, problem)
                 index = cia402.TARGET_OF_MODE[status.mode]
-                refusal = self._protection.refuses_write(node_id, index)
-                if refusal:
-                    return failed(status, refusal, abort_codes.LOCAL_CONTROL)
+                refused = self._checks.target_object(status, index)
+                if refused:
+                    return refused
                 drive.last_target = time.monotonic()
                 values = {index: round(value)}
                 if drive.halted_by and status.mode != cia402.PROFILE_POSITION:
@@ -226,7 +225,8 @@ class DriveService:
                     drive.status = replace(drive.status, halted=False)
                     self._tell(drive)
             if status.mode == cia402.PROFILE_POSITION:
-                self._runner.call_soon(lambda: self._commands.set_point(drive, round(value)))
+                self._runner.call_soon(lambda: self._commands.set_point(drive, round(value),
+                                                                        reads))
                 return DriveResult(True, 'set-point handed to the drive', status)
             sent = drive.objects.write(values, self.settings.feedback_period * 10 or 0.5)
         sent.add_done_callback(lambda done: self._log_failed_target(node_id, done))
@@ -274,8 +274,10 @@ class DriveService:
         done: Future = Future()
 
         def taken(read: Future) -> None:
-            self._apply(drive, read.result(), time.monotonic(), since=since)
-            answer(done, read.result())
+            try:
+                self._apply(drive, read.result(), time.monotonic(), since=since)
+            finally:  # whatever happened, the reader (a poll, a move) goes on
+                answer(done, read.result())
         drive.objects.read(indexes, timeout).add_done_callback(taken)
         return done
 
@@ -354,6 +356,8 @@ class DriveService:
         with self._lock:
             if since is not None:
                 values = drive.newest(values, since, bool(reread))
+            if not values:
+                return  # nothing was read, or only what TPDOs brought since: no new stamp
             old = drive.status
             if not drive.heard or (drive.read_done != drive.read_wanted
                                    and reread != drive.read_wanted):
@@ -449,46 +453,14 @@ class DriveService:
 
     # Checks, and the way out.
 
-    def _command_refusal(self, node_id: int, command: str, mode: int,
-                         timeout: float) -> Optional[DriveResult]:
-        """Return why a command cannot run (nothing is sent then), or None: the one check."""
-        problem = checks.request_problem(command, mode, timeout)
-        if problem:
-            return self._refused(node_id, f'{problem}; {checks.NOTHING_SENT}')
-        refused = self._drive_refusal(node_id, enabled=command in checks.ENABLED_COMMANDS,
-                                      stopping=command in checks.STOPPING_COMMANDS)
-        if refused is not None:
-            return refused
-        status = self.status(node_id)
-        problem = checks.command_problem(status, command, mode)
-        return failed(status, f'{problem}; {checks.NOTHING_SENT}') if problem else None
+    def _reads(self, node_id: int) -> int:
+        """Return how often a drive was read afresh, taken just before its request's check.
 
-    def _drive_refusal(self, node_id: int, enabled: bool,
-                       stopping: bool = False) -> Optional[DriveResult]:
-        """Return why drive ``node_id`` takes no request now, or None.
-
-        ``stopping``: a command that stops the drive, sent even to one not heard.
+        A sequence fails when the drive is read again while it runs (it booted, or was heard
+        again): taken before the check, a boot after the check always counts.
         """
-        problem = check_node_id(node_id, '1..127', lowest=1)
-        if not problem and node_id not in self._drives:
-            problem = (f'node {node_id} is not a drive (parameter drives.nodes: '
-                       f'{self.node_ids or "none"})')
-        if problem:
-            return self._refused(node_id, f'{problem}; {checks.NOTHING_SENT}')
-        with self._lock:
-            drive = self._drives[node_id]
-            status, closing = shown(drive), self._closing
-            heard = drive.heard and drive.ready == drive.read_wanted
-        refusal = self._protection.refuses_write(node_id, cia402.CONTROLWORD)
-        if refusal:
-            return failed(status, f'{refusal}; {checks.NOTHING_SENT}', abort_codes.LOCAL_CONTROL)
-        problem = (SHUTTING_DOWN if closing else self._bus_down()
-                   or (None if stopping else checks.state_problem(status, heard, enabled)))
-        return failed(status, f'{problem}; {checks.NOTHING_SENT}') if problem else None
-
-    def _refused(self, node_id: int, message: str) -> DriveResult:
         drive = self._drives.get(node_id)
-        return failed(self.status(node_id) if drive else DriveStatus(node_id), message)
+        return drive.read_wanted if drive else 0
 
     def _submit(self, drive: DriveRecord, coroutine) -> 'Future[DriveResult]':
         return self._runner.submit(coroutine) or resolved(failed(

@@ -1,15 +1,16 @@
 """The checks of drive requests: what is refused before anything is sent, and the words why.
 
-:meth:`~.drive.DriveService.command`, ``move`` and ``target`` check a request here and only
-then route it; each problem names the field or the state that stops it.
+:meth:`~.drive.DriveService.command`, ``move`` and ``target`` check a request here
+(:class:`RequestChecks`) and only then route it; each problem names the field or the state
+that stops it.
 """
 
 import math
-from typing import Optional
+from typing import Callable, Dict, Optional
 
-from . import cia402
-from .drive_status import DriveStatus
-from .sdo import MAX_TIMEOUT
+from . import abort_codes, cia402
+from .drive_status import DriveRecord, DriveResult, DriveStatus, failed, shown
+from .sdo import check_node_id, MAX_TIMEOUT
 from .text import quoted
 
 COMMANDS = ('enable', 'disable', 'quick_stop', 'halt', 'resume', 'fault_reset', 'set_mode',
@@ -20,6 +21,79 @@ ENABLED_COMMANDS = frozenset({'halt', 'resume', 'home'})
 STOPPING_COMMANDS = frozenset({'quick_stop', 'disable'})
 MODES = tuple(cia402.MODE_NAMES)
 NOTHING_SENT = 'nothing was sent'
+SHUTTING_DOWN = 'the gateway is shutting down'
+
+
+class RequestChecks:
+    """The one check of each drive request against the drives as they are now.
+
+    Each returns the answer that refuses the request (nothing is sent then), or None.
+    ``drives`` and ``lock`` are the drive service's records and lock, ``protection`` the
+    gateway's write rules, ``bus_down()`` why the bus is down (None while up), ``closing()``
+    whether the service is shutting down.
+    """
+
+    def __init__(self, drives: Dict[int, DriveRecord], lock, protection,
+                 bus_down: Callable[[], Optional[str]], closing: Callable[[], bool]):
+        self._drives, self._lock, self._protection = drives, lock, protection
+        self._bus_down, self._closing = bus_down, closing
+
+    def command(self, node_id: int, command: str, mode: int,
+                timeout: float) -> Optional[DriveResult]:
+        """Check a ``~/drive_command`` request."""
+        problem = request_problem(command, mode, timeout)
+        if problem:
+            return self._refused(node_id, problem)
+        refused = self.drive(node_id, enabled=command in ENABLED_COMMANDS,
+                             stopping=command in STOPPING_COMMANDS)
+        if refused is not None:
+            return refused
+        with self._lock:
+            status = shown(self._drives[node_id])
+        problem = command_problem(status, command, mode)
+        return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
+
+    def move(self, node_id: int, position: int, velocity: int) -> Optional[DriveResult]:
+        """Check a move (drive units)."""
+        problem = (integer_problem('position', position, 32)
+                   or integer_problem('velocity', velocity, 32, unsigned=True))
+        return (self.drive(node_id, enabled=True)
+                or (self._refused(node_id, problem) if problem else None))
+
+    def drive(self, node_id: int, enabled: bool,
+              stopping: bool = False) -> Optional[DriveResult]:
+        """Check that drive ``node_id`` takes a request now.
+
+        ``enabled``: the request needs it enabled by us; ``stopping``: a command that stops
+        the drive, sent even to one not heard.
+        """
+        problem = check_node_id(node_id, '1..127', lowest=1)
+        if not problem and node_id not in self._drives:
+            problem = (f'node {node_id} is not a drive (parameter drives.nodes: '
+                       f'{sorted(self._drives) or "none"})')
+        if problem:
+            return self._refused(node_id, problem)
+        with self._lock:
+            drive = self._drives[node_id]
+            status = shown(drive)
+            heard = drive.heard and drive.ready == drive.read_wanted
+        refusal = self._protection.refuses_write(node_id, cia402.CONTROLWORD)
+        if refusal:
+            return failed(status, f'{refusal}; {NOTHING_SENT}', abort_codes.LOCAL_CONTROL)
+        problem = (SHUTTING_DOWN if self._closing() else self._bus_down()
+                   or (None if stopping else state_problem(status, heard, enabled)))
+        return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
+
+    def target_object(self, status: DriveStatus, index: int) -> Optional[DriveResult]:
+        """Check that the target object ``index`` may be written (the write rules)."""
+        refusal = self._protection.refuses_write(status.node_id, index)
+        return failed(status, refusal, abort_codes.LOCAL_CONTROL) if refusal else None
+
+    def _refused(self, node_id: int, problem: str) -> DriveResult:
+        drive = self._drives.get(node_id)
+        with self._lock:
+            status = shown(drive) if drive else DriveStatus(node_id)
+        return failed(status, f'{problem}; {NOTHING_SENT}')
 
 
 def request_problem(command: str, mode: int, timeout: float) -> Optional[str]:

@@ -13,9 +13,9 @@ import contextvars
 from typing import Callable, Dict, Optional
 
 from . import cia402
+from .drive_checks import SHUTTING_DOWN
 from .drive_status import DriveResult
 
-SHUTTING_DOWN = 'the gateway is shutting down'
 # The timeout of each SDO a sequence sends (a PDO goes out without an answer).
 SEND_TIMEOUT = 1.0
 # How long a cancelled move waits for the halted axis to stand still before it answers.
@@ -48,26 +48,31 @@ class DriveCommands:
         self._set_points: Dict[int, int] = {}
         self._streams: set = set()  # the tasks streaming set-points
 
-    async def run(self, drive, command: str, mode: int, timeout: float):
-        """Run ``command`` (checked by the service) on ``drive``; return its DriveResult."""
+    async def run(self, drive, command: str, mode: int, timeout: float, reads: int):
+        """Run ``command`` (checked by the service) on ``drive``; return its DriveResult.
+
+        ``reads``: the drive's re-reads when the request was checked (``DriveRecord``
+        ``read_wanted``); the command fails if the drive is read again meanwhile.
+        """
         sequence = getattr(self, f'_{command}')
-        return await self._own(drive, lambda: sequence(drive, mode), timeout)
+        return await self._own(drive, lambda: sequence(drive, mode), timeout, reads)
 
     async def move(self, drive, position: int, relative: bool, velocity: int,
-                   on_feedback: Optional[Callable], token: object) -> object:
+                   on_feedback: Optional[Callable], token: object, reads: int) -> object:
         """Move in profile position to ``position``; return the DriveResult.
 
         ``token`` names this move to :meth:`cancel`, which then ends it only while it runs.
         """
         return await self._own(drive, lambda: self._move(drive, position, relative, velocity,
-                                                         on_feedback), None, token)
+                                                         on_feedback), None, reads, token)
 
-    def set_point(self, drive, position: int) -> None:
+    def set_point(self, drive, position: int, reads: int) -> None:
         """Take ``position`` as the next PP set-point (on the loop); the latest one wins."""
         self._set_points[drive.node_id] = position
         if self._tasks.get(drive.node_id) in self._streams:
             return  # the running stream takes it next
-        stream = asyncio.ensure_future(self._own(drive, lambda: self._stream(drive), None))
+        stream = asyncio.ensure_future(self._own(drive, lambda: self._stream(drive), None,
+                                                 reads))
         self._streams.add(stream)
         stream.add_done_callback(self._streams.discard)
 
@@ -93,7 +98,7 @@ class DriveCommands:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
 
-    async def _own(self, drive, sequence: Callable, timeout: Optional[float],
+    async def _own(self, drive, sequence: Callable, timeout: Optional[float], reads: int,
                    token: object = None):
         task = asyncio.current_task()
         previous = self._tasks.get(drive.node_id)
@@ -102,7 +107,7 @@ class DriveCommands:
             previous.cancel()
         self._tasks[drive.node_id] = task
         self._tokens[task] = token
-        READS_AT_START.set(drive.read_wanted)  # this task's own context, and wait_for's
+        READS_AT_START.set(reads)  # this task's own context, and wait_for's
         service, node_id = self._service, drive.node_id
         try:
             if timeout:
@@ -120,8 +125,11 @@ class DriveCommands:
                                       f'mode {status.mode})', status)
         except asyncio.CancelledError:
             reason = self._reasons.pop(task, SHUTTING_DOWN)
-            if task in self._halt_when_cancelled:
-                self._halt_when_cancelled.discard(task)
+            halting = task in self._halt_when_cancelled
+            self._halt_when_cancelled.discard(task)
+            # A move replaced before its cancel came halts nothing: the drive is the newer
+            # sequence's.
+            if halting and self._tasks.get(node_id) is task:
                 try:
                     reason = await self._halt_after_cancel(drive, reason)
                 except asyncio.CancelledError:  # replaced or shut down meanwhile: answered
@@ -142,14 +150,11 @@ class DriveCommands:
         the one the sequence was asked for, whatever its state now.
         """
         loop = asyncio.get_running_loop()
-        reads = READS_AT_START.get(drive.read_wanted)
         while True:
             woken = loop.create_future()
             self._service.when_updated(drive, lambda f=woken: f.done() or f.set_result(None))
             status = self._service.status(drive.node_id)
-            if not drive.heard or drive.read_wanted != reads:
-                raise DriveFailed(f'node {drive.node_id} stopped heartbeating or booted during '
-                                  f'the command: state {status.state}; enable it afresh')
+            _check_same_drive(drive, status)
             if status.faulted and not fault_ok:
                 raise DriveFailed(f'node {drive.node_id} went to {status.state}: error '
                                   f'0x{status.error_code:04X} ({status.error or "reading"})',
@@ -161,6 +166,7 @@ class DriveCommands:
     async def _send(self, drive, values: Dict[int, int]) -> int:
         """Send ``values``; return the statuswords taken before (what a reply must exceed)."""
         mark = drive.updates
+        _check_same_drive(drive, self._service.status(drive.node_id))
         try:
             sent = self._service.send(drive, values, SEND_TIMEOUT)
         except ValueError as error:
@@ -225,6 +231,9 @@ class DriveCommands:
         self._service.set_halted(drive, '')
         status = await self._reach(drive, cia402.OPERATION_ENABLED,
                                    lambda s: s.state == cia402.OPERATION_ENABLED)
+        if drive.controlword & cia402.HALT:  # an enabled drive a halt holds: its target holds
+            mark = await self._send(drive, {cia402.CONTROLWORD: drive.controlword & ~cia402.HALT})
+            status = await self._after(drive, mark, lambda s: True)
         self._service.set_enabled(drive, True)
         return f'node {drive.node_id} is OPERATION_ENABLED in {cia402.mode_name(status.mode)}'
 
@@ -380,6 +389,17 @@ class DriveCommands:
         await self._read_position(drive)
         return (f'{reason}: halted at position '
                 f'{self._service.status(drive.node_id).position} (drive units)')
+
+
+def _check_same_drive(drive, status) -> None:
+    """Raise when ``drive`` is lost, or was read again since the sequence was asked for.
+
+    A drive that booted (or was heard again) is not the one the sequence was asked for,
+    whatever its state now: nothing more is sent to it.
+    """
+    if not drive.heard or drive.read_wanted != READS_AT_START.get():
+        raise DriveFailed(f'node {drive.node_id} stopped heartbeating or booted during the '
+                          f'command: state {status.state}; enable it afresh')
 
 
 def _standing(status) -> bool:

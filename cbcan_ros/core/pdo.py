@@ -12,6 +12,7 @@ synchronous ones right after a SYNC the gateway produces (``sync.py``).
 """
 
 from concurrent.futures import Future
+import contextlib
 from dataclasses import dataclass, field
 import logging
 import re
@@ -207,6 +208,24 @@ class PdoService:
             return future
         answer(future, self._send(mapping, frame))
         return future
+
+    def written_by_sdo(self, node_id: int, values: Sequence[EntryValue]) -> None:
+        """Put ``values``, just written to ``node_id`` by SDO, into the frames of its RPDOs.
+
+        Nothing is sent. A synchronous RPDO waiting for the next SYNC then carries them: sent
+        as it was built, it would undo the SDO write (a stop written by SDO, then a frame
+        with the controlword that ran the drive).
+        """
+        with self._lock:
+            device = self._devices.get(node_id)
+            for number, mapping in (device.rpdos.items() if device else ()):
+                mapped = [value for value in values if any(
+                    (entry.index, entry.subindex) == (value.index, value.subindex)
+                    and not entry.dummy for entry in mapping.entries)]
+                if mapped and number in device.last_sent:
+                    with contextlib.suppress(ValueError):  # sizes the RPDO cannot carry
+                        device.last_sent[number] = encode(mapping, device.last_sent[number],
+                                                          mapped)
 
     def _prepare(self, node_id: int, number: int, values: Sequence[EntryValue], data: bytes):
         """Return (mapping, frame) to send, or the SdoResult that refuses the write."""
