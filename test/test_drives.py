@@ -309,8 +309,8 @@ def test_set_mode_holds_the_axis_and_answers_in_the_new_mode(rig):
     wait_until(lambda: axis.drive.velocity == 0, WAIT, 'zero torque: the axis at rest')
 
 
-def test_cancelling_a_move_halts_the_drive_and_answers_where_it_stopped(rig):
-    axis = rig()
+def move_under_way(axis):
+    """Enable in PP and move towards 500 rad at 2 rad/s; return the goal once moving."""
     axis.enable(PP)
     assert axis.mover.wait_for_server(timeout_sec=10.0)
     feedback = []
@@ -320,6 +320,12 @@ def test_cancelling_a_move_halts_the_drive_and_answers_where_it_stopped(rig):
     # Cancelled once under way: a cancel before the first step would halt it at 0.
     wait_until(lambda: feedback and feedback[-1].feedback.position > 0, WAIT,
                'move feedback with the drive under way')
+    return goal
+
+
+def test_cancelling_a_move_halts_the_drive_and_answers_where_it_stopped(rig):
+    axis = rig()
+    goal = move_under_way(axis)
     wait_for_future(goal.cancel_goal_async(), WAIT)
     result = wait_for_future(goal.get_result_async(), WAIT).result
     assert not result.success and 'cancelled' in result.message
@@ -336,14 +342,7 @@ def test_a_new_move_right_after_a_cancel_answers_the_cancelled_one_and_runs(rig,
     monkeypatch.setattr(drive_commands, 'HALT_WAIT', WAIT)
     axis = rig()
     axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', 200))
-    axis.enable(PP)
-    assert axis.mover.wait_for_server(timeout_sec=10.0)
-    feedback = []
-    first = wait_for_future(axis.mover.send_goal_async(
-        DriveMove.Goal(node_id=NODE, position=500.0, velocity=2.0),
-        feedback_callback=feedback.append), WAIT)
-    wait_until(lambda: feedback and feedback[-1].feedback.velocity == 2.0, WAIT,
-               'the drive at its profile velocity')
+    first = move_under_way(axis)
     wait_for_future(first.cancel_goal_async(), WAIT)
     second = wait_for_future(axis.mover.send_goal_async(
         DriveMove.Goal(node_id=NODE, position=0.0, velocity=50.0)), WAIT)
