@@ -237,36 +237,71 @@ def test_a_target_sent_just_as_the_command_timeout_halts_cannot_undo_the_halt(ri
     wait_until(lambda: axis.drive.statusword & 0x100, WAIT, 'the drive halted, as shown')
 
 
-def test_a_stop_by_sdo_is_not_undone_by_a_target_waiting_for_the_sync(rig):
-    # With SYNC a CSP target waits in RPDO 1 (controlword, target position, mode) for the
-    # next SYNC, while deactivating the node stops the drive by SDO at once. Once a defect:
-    # the waiting frame went out after the stop with the controlword that ran the drive, and
-    # a drive that stays in quick stop (0x605A 5..8) took it and ran again.
-    axis = rig(pdos=default_drive_pdos(1), **{'sync.period': 0.3})
+def enabled_in_csp_with_sync(rig):
+    """Return (rig, gateway): the drive's PDOs synchronous, SYNC every 0.5 s, enabled in CSP.
+
+    Its quick stop option (0x605A) keeps it in QUICK_STOP_ACTIVE, from where a controlword
+    that enables operation runs it again (transition 16).
+    """
+    axis = rig(pdos=default_drive_pdos(1), **{'sync.period': 0.5})
     axis.drive.set_value(QUICK_STOP_OPTION, 0, struct.pack('<h', 6))
     gateway = axis.gateway.node.gateway
     wait_until(lambda: 1 in gateway.pdo.mappings(NODE)[1], WAIT, "the drive's RPDO 1 read")
     assert axis.command('enable', CSP, timeout=WAIT).success
-    bus, frames = axis.gateway.raw_bus(), []
+    return axis, gateway
 
-    def after_the_stop():
-        """Return the frames since the SDO stop once two SYNCs followed it, else None."""
+
+def watch(bus, frames: list, condition, what: str):
+    """Collect ``bus``'s frames into ``frames`` until ``condition(frames)``; return that."""
+    def seen():
         message = bus.recv(0.1)
         if message is not None:
             frames.append(message)
-        stop = next((n for n, m in enumerate(frames) if m.arbitration_id == 0x600 + NODE
-                     and bytes(m.data[1:4]) == bytes([0x40, 0x60, 0])), None)
-        later = frames[stop:] if stop is not None else []
-        return later if sum(m.arbitration_id == 0x80 for m in later) >= 2 else None
+        return condition(frames)
+    return wait_until(seen, WAIT, what)
+
+
+def two_syncs_after_the_stop(frames: list):
+    """Return the frames from the SDO write of the controlword on, once two SYNCs followed."""
+    stop = next((n for n, m in enumerate(frames) if m.arbitration_id == 0x600 + NODE
+                 and bytes(m.data[1:4]) == bytes([0x40, 0x60, 0])), None)
+    later = frames[stop:] if stop is not None else []
+    return later if sum(m.arbitration_id == 0x80 for m in later) >= 2 else None
+
+
+def test_a_stop_by_sdo_is_not_undone_by_a_target_waiting_for_the_sync(rig):
+    # With SYNC a CSP target waits in RPDO 1 (controlword, target position, mode) for the
+    # next SYNC, while deactivating the node stops the drive by SDO at once. Once a defect:
+    # the waiting frame went out after the stop with the controlword that ran the drive.
+    axis, gateway = enabled_in_csp_with_sync(rig)
+    bus, frames = axis.gateway.raw_bus(), []
     try:
         assert gateway.drives.target(NODE, 100).success
         gateway.drives.pause('deactivated')
-        later = wait_until(after_the_stop, WAIT, 'two SYNCs after the stop by SDO')
+        later = watch(bus, frames, two_syncs_after_the_stop, 'two SYNCs after the stop')
     finally:
         bus.shutdown()
     controlwords = [struct.unpack_from('<H', m.data)[0] for m in later
                     if m.arbitration_id == 0x200 + NODE]
-    assert all(word == 0x0002 for word in controlwords), [hex(w) for w in controlwords]
+    assert controlwords and all(word == 0x0002 for word in controlwords), \
+        [hex(w) for w in controlwords]
+    assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE'
+
+
+def test_a_stop_by_sdo_is_not_undone_by_a_target_the_drive_keeps_for_the_sync(rig):
+    # The target frame went out after a SYNC: the drive keeps it, to apply at the next one.
+    # Once a defect: the stop by SDO came between, and that SYNC ran the drive again.
+    axis, gateway = enabled_in_csp_with_sync(rig)
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        assert gateway.drives.target(NODE, 100).success
+        watch(bus, frames, lambda seen: any(
+            m.arbitration_id == 0x200 + NODE and struct.unpack_from('<i', m.data, 2)[0] == 100
+            for m in seen), 'the target frame sent after a SYNC')
+        gateway.drives.pause('deactivated')
+        watch(bus, frames, two_syncs_after_the_stop, 'two SYNCs after the stop')
+    finally:
+        bus.shutdown()
     assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE'
 
 
@@ -332,6 +367,21 @@ def test_cancelling_a_move_halts_the_drive_and_answers_where_it_stopped(rig):
     assert axis.drive.velocity == 0
     assert 0 < result.position < 500.0
     assert math.isclose(result.position, axis.drive.position / SCALE)
+
+
+def test_enable_on_a_drive_halted_on_its_way_keeps_it_where_it_stopped(rig):
+    # enable where resume was meant, after a cancelled move: the halt is released and the
+    # axis stays. Once a defect (f39d984): the halt was released alone, and the drive went
+    # on to the set-point it had been halted on its way to.
+    axis = rig()
+    goal = move_under_way(axis)
+    wait_for_future(goal.cancel_goal_async(), WAIT)
+    stopped = wait_for_future(goal.get_result_async(), WAIT).result.position
+    axis.enable(PP)
+    wait_until(lambda: axis.drive.statusword & 0x400 and axis.drive.velocity == 0, WAIT,
+               'the drive at a set-point, standing')
+    assert not axis.drive.statusword & 0x100, 'still halted'
+    assert math.isclose(axis.drive.position / SCALE, stopped)
 
 
 def test_a_new_move_right_after_a_cancel_answers_the_cancelled_one_and_runs(rig,

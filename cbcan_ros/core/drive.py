@@ -50,6 +50,7 @@ from .drive_status import (
 from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED, OPERATIONAL
 from .pdo_mapping import ReceivedPdo
 from .request_queue import answer, resolved
+from .sdo import SdoResult
 
 LOGGER = logging.getLogger(__name__)
 
@@ -165,7 +166,8 @@ class DriveService:
         A command replaces one still running on the same drive (answered "replaced"). Never
         raises; a request that cannot be run is answered at once, nothing sent.
         """
-        reads = self._reads(node_id)
+        # A stop goes to whatever drive is there: it may have booted, and be powered again.
+        reads = None if command in checks.STOPPING_COMMANDS else self._reads(node_id)
         refused = self._checks.command(node_id, command, mode, timeout)
         if refused is not None:
             return resolved(refused)
@@ -234,10 +236,17 @@ class DriveService:
 
     # Used by the command sequences (drive_commands), on the drives' event loop.
 
-    def send(self, drive: DriveRecord, values: Dict[int, int], timeout: float) -> 'Future':
-        """Send ``values`` to ``drive`` (the controlword kept as the drive's commanded one)."""
+    def send(self, drive: DriveRecord, values: Dict[int, int], timeout: float,
+             reads: Optional[int]) -> 'Future':
+        """Send ``values`` to ``drive`` (the controlword kept as the drive's commanded one).
+
+        Nothing when the drive was read again since ``reads`` (``checks.lost_problem``).
+        """
         with drive.sending:
             with self._lock:
+                problem = checks.lost_problem(drive, reads, shown(drive))
+                if problem:
+                    return resolved(SdoResult.failed(problem))
                 if cia402.CONTROLWORD in values:
                     drive.controlword = values[cia402.CONTROLWORD]
             return drive.objects.write(values, timeout)

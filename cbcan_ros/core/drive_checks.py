@@ -24,6 +24,18 @@ NOTHING_SENT = 'nothing was sent'
 SHUTTING_DOWN = 'the gateway is shutting down'
 
 
+def lost_problem(drive: DriveRecord, reads: Optional[int], status: DriveStatus) -> Optional[str]:
+    """Return why a sequence asked for when ``drive`` had been read ``reads`` times stops.
+
+    ``None`` while the drive is heard and not read again since (it did not boot); ``reads``
+    None: any drive heard will do.
+    """
+    if drive.heard and (reads is None or drive.read_wanted == reads):
+        return None
+    return (f'node {drive.node_id} stopped heartbeating or booted during the command: state '
+            f'{status.state}; enable it afresh')
+
+
 class RequestChecks:
     """The one check of each drive request against the drives as they are now.
 

@@ -13,14 +13,15 @@ import contextvars
 from typing import Callable, Dict, Optional
 
 from . import cia402
-from .drive_checks import SHUTTING_DOWN
+from .drive_checks import lost_problem, SHUTTING_DOWN
 from .drive_status import DriveResult
 
 # The timeout of each SDO a sequence sends (a PDO goes out without an answer).
 SEND_TIMEOUT = 1.0
 # How long a cancelled move waits for the halted axis to stand still before it answers.
 HALT_WAIT = 2.0
-# The drive's re-reads (``read_wanted``) when the running sequence started.
+# The drive's re-reads (``read_wanted``) when the running sequence was asked for; None for
+# a stop, which goes to whatever drive is there.
 READS_AT_START: contextvars.ContextVar = contextvars.ContextVar('reads_at_start')
 
 
@@ -48,11 +49,13 @@ class DriveCommands:
         self._set_points: Dict[int, int] = {}
         self._streams: set = set()  # the tasks streaming set-points
 
-    async def run(self, drive, command: str, mode: int, timeout: float, reads: int):
+    async def run(self, drive, command: str, mode: int, timeout: float,
+                  reads: Optional[int]):
         """Run ``command`` (checked by the service) on ``drive``; return its DriveResult.
 
         ``reads``: the drive's re-reads when the request was checked (``DriveRecord``
-        ``read_wanted``); the command fails if the drive is read again meanwhile.
+        ``read_wanted``); the command fails if the drive is read again meanwhile. None for a
+        stop: it goes to whatever drive is there.
         """
         sequence = getattr(self, f'_{command}')
         return await self._own(drive, lambda: sequence(drive, mode), timeout, reads)
@@ -98,7 +101,8 @@ class DriveCommands:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
 
-    async def _own(self, drive, sequence: Callable, timeout: Optional[float], reads: int,
+    async def _own(self, drive, sequence: Callable, timeout: Optional[float],
+                   reads: Optional[int],
                    token: object = None):
         task = asyncio.current_task()
         previous = self._tasks.get(drive.node_id)
@@ -166,9 +170,8 @@ class DriveCommands:
     async def _send(self, drive, values: Dict[int, int]) -> int:
         """Send ``values``; return the statuswords taken before (what a reply must exceed)."""
         mark = drive.updates
-        _check_same_drive(drive, self._service.status(drive.node_id))
         try:
-            sent = self._service.send(drive, values, SEND_TIMEOUT)
+            sent = self._service.send(drive, values, SEND_TIMEOUT, READS_AT_START.get())
         except ValueError as error:
             raise DriveFailed(f'node {drive.node_id}: {error}; nothing was sent') from None
         result = await asyncio.wrap_future(sent)
@@ -199,11 +202,14 @@ class DriveCommands:
                 drive, lambda s, before=before: s.state != before or done(s), fault_ok)
         return status
 
-    async def _hold(self, drive, mode: int) -> None:
-        """Set ``mode``'s target so that the axis stays where it is (before any enable)."""
+    async def _hold(self, drive, mode: int) -> int:
+        """Set ``mode``'s target so that the axis stays where it is (before any enable).
+
+        Returns the target set (0 for a mode that takes none).
+        """
         index = cia402.TARGET_OF_MODE.get(mode)
         if index is None:
-            return
+            return 0
         value = 0
         if index == cia402.TARGET_POSITION:
             read = await asyncio.wrap_future(drive.objects.read([cia402.POSITION_ACTUAL],
@@ -214,26 +220,33 @@ class DriveCommands:
                                   f'was enabled')
             value = read[cia402.POSITION_ACTUAL]
         await self._send(drive, {index: value})
+        return value
 
-    async def _change_mode(self, drive, mode: int) -> None:
-        if self._service.status(drive.node_id).mode == mode:
-            await self._hold(drive, mode)
-            return
-        await self._hold(drive, mode)
-        await self._send(drive, {cia402.MODE: mode})
-        await self._until(drive, lambda status: status.mode == mode)
+    async def _change_mode(self, drive, mode: int) -> int:
+        """Hold the axis, then change to ``mode``; return the target that holds it."""
+        held = await self._hold(drive, mode)
+        if self._service.status(drive.node_id).mode != mode:
+            await self._send(drive, {cia402.MODE: mode})
+            await self._until(drive, lambda status: status.mode == mode)
+        return held
 
     # The commands.
 
     async def _enable(self, drive, mode: int) -> str:
         self._service.set_enabled(drive, False)
-        await self._change_mode(drive, mode or self._service.status(drive.node_id).mode)
+        held = await self._change_mode(drive, mode or self._service.status(drive.node_id).mode)
         self._service.set_halted(drive, '')
         status = await self._reach(drive, cia402.OPERATION_ENABLED,
                                    lambda s: s.state == cia402.OPERATION_ENABLED)
-        if drive.controlword & cia402.HALT:  # an enabled drive a halt holds: its target holds
-            mark = await self._send(drive, {cia402.CONTROLWORD: drive.controlword & ~cia402.HALT})
-            status = await self._after(drive, mark, lambda s: True)
+        if drive.controlword & cia402.HALT:  # already enabled, halted: released, held
+            if status.mode == cia402.PROFILE_POSITION:
+                # Released alone, it would go on to the set-point it was halted on its way to.
+                await self._new_set_point(drive, held, False)
+            else:  # bit 4 down too: a halted homing does not start again
+                mark = await self._send(drive, {cia402.CONTROLWORD: drive.controlword & ~(
+                    cia402.HALT | cia402.MODE_BITS)})
+                await self._after(drive, mark, lambda s: True)
+            status = self._service.status(drive.node_id)
         self._service.set_enabled(drive, True)
         return f'node {drive.node_id} is OPERATION_ENABLED in {cia402.mode_name(status.mode)}'
 
@@ -395,11 +408,12 @@ def _check_same_drive(drive, status) -> None:
     """Raise when ``drive`` is lost, or was read again since the sequence was asked for.
 
     A drive that booted (or was heard again) is not the one the sequence was asked for,
-    whatever its state now: nothing more is sent to it.
+    whatever its state now: nothing more is sent to it (``DriveService.send`` checks too).
+    A stop (``READS_AT_START`` None) is for whatever drive is there.
     """
-    if not drive.heard or drive.read_wanted != READS_AT_START.get():
-        raise DriveFailed(f'node {drive.node_id} stopped heartbeating or booted during the '
-                          f'command: state {status.state}; enable it afresh')
+    problem = lost_problem(drive, READS_AT_START.get(), status)
+    if problem:
+        raise DriveFailed(problem)
 
 
 def _standing(status) -> bool:

@@ -165,11 +165,11 @@ class DriveObjects:
         return done
 
     def _write_by_sdo(self, data, timeout: float) -> 'Future[SdoResult]':
-        batch = self._sdo_batch([Access(self.node_id, index, 0, True, value)
-                                 for index, value in data], timeout)
-        if self.node_id in self._pdo.node_ids:  # a frame waiting for SYNC must not undo it
+        if self.node_id in self._pdo.node_ids:  # no RPDO frame may undo it
             self._pdo.written_by_sdo(self.node_id, [EntryValue(index, 0, data=value)
                                                     for index, value in data])
+        batch = self._sdo_batch([Access(self.node_id, index, 0, True, value)
+                                 for index, value in data], timeout)
         done: Future = Future()
         batch.add_done_callback(lambda finished: answer(done, next(
             (result for result in finished.result() if not result.success),

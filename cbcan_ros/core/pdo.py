@@ -12,7 +12,6 @@ synchronous ones right after a SYNC the gateway produces (``sync.py``).
 """
 
 from concurrent.futures import Future
-import contextlib
 from dataclasses import dataclass, field
 import logging
 import re
@@ -210,22 +209,31 @@ class PdoService:
         return future
 
     def written_by_sdo(self, node_id: int, values: Sequence[EntryValue]) -> None:
-        """Put ``values``, just written to ``node_id`` by SDO, into the frames of its RPDOs.
+        """Put ``values``, about to be written to ``node_id`` by SDO, into its RPDOs' frames.
 
-        Nothing is sent. A synchronous RPDO waiting for the next SYNC then carries them: sent
-        as it was built, it would undo the SDO write (a stop written by SDO, then a frame
-        with the controlword that ran the drive).
+        So no frame undoes the SDO write (a stop by SDO, then a frame with the controlword
+        that ran the drive): one waiting for the next SYNC goes out carrying them, and while
+        SYNC is produced a synchronous RPDO's frame is sent again at once, since the device
+        keeps the last one it received until the next SYNC applies it.
         """
+        resend = []
         with self._lock:
             device = self._devices.get(node_id)
             for number, mapping in (device.rpdos.items() if device else ()):
                 mapped = [value for value in values if any(
                     (entry.index, entry.subindex) == (value.index, value.subindex)
                     and not entry.dummy for entry in mapping.entries)]
-                if mapped and number in device.last_sent:
-                    with contextlib.suppress(ValueError):  # sizes the RPDO cannot carry
-                        device.last_sent[number] = encode(mapping, device.last_sent[number],
-                                                          mapped)
+                if not mapped or number not in device.last_sent:
+                    continue  # a frame never sent is built afresh by its next write
+                try:
+                    device.last_sent[number] = encode(mapping, device.last_sent[number],
+                                                      mapped)
+                except ValueError:  # mapped at another size: no frame of ours carries them
+                    continue
+                if mapping.synchronous and self._sync.producing and not self._closing:
+                    resend.append((mapping, device.last_sent[number]))
+        for mapping, frame in resend:
+            self._send(mapping, frame)
 
     def _prepare(self, node_id: int, number: int, values: Sequence[EntryValue], data: bytes):
         """Return (mapping, frame) to send, or the SdoResult that refuses the write."""
