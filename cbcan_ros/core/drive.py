@@ -442,6 +442,7 @@ class DriveService:
                 return  # it booted meanwhile: a newer read follows
             drive.ready = request  # commands go, and its feedback counts, from now
             self._tell(drive)
+        self._wake(drive)  # a stop waiting across a boot sees the drive read
 
     async def _read_error(self, drive: DriveRecord) -> None:
         await asyncio.wrap_future(self.read_feedback(drive, [cia402.ERROR_CODE],

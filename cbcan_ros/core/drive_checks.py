@@ -28,9 +28,9 @@ def lost_problem(drive: DriveRecord, reads: Optional[int], status: DriveStatus) 
     """Return why a sequence asked for when ``drive`` had been read ``reads`` times stops.
 
     ``None`` while the drive is heard and not read again since (it did not boot); ``reads``
-    None: any drive heard will do.
+    None (a stop): never, whatever drive is there, heard or not.
     """
-    if drive.heard and (reads is None or drive.read_wanted == reads):
+    if reads is None or (drive.heard and drive.read_wanted == reads):
         return None
     return (f'node {drive.node_id} stopped heartbeating or booted during the command: state '
             f'{status.state}; enable it afresh')

@@ -234,6 +234,9 @@ class DriveCommands:
 
     async def _enable(self, drive, mode: int) -> str:
         self._service.set_enabled(drive, False)
+        if (drive.controlword & cia402.HALT
+                and self._service.status(drive.node_id).state == cia402.OPERATION_ENABLED):
+            await self._until(drive, _standing)  # held where it stands, not where it slows
         held = await self._change_mode(drive, mode or self._service.status(drive.node_id).mode)
         self._service.set_halted(drive, '')
         status = await self._reach(drive, cia402.OPERATION_ENABLED,
@@ -378,7 +381,10 @@ class DriveCommands:
         status = self._service.status(drive.node_id)
         if (drive.controlword & cia402.NEW_SET_POINT
                 or status.statusword & cia402.MODE_BIT_12):
-            mark = await self._send(drive, {cia402.CONTROLWORD: word})
+            # A halt stays on until the new set-point: released with bit 4 down, a drive
+            # halted on its way would head for the old one meanwhile.
+            mark = await self._send(drive, {
+                cia402.CONTROLWORD: drive.controlword & ~cia402.MODE_BITS})
             await self._after(drive, mark, lambda s: not s.statusword & cia402.MODE_BIT_12)
         bits = cia402.NEW_SET_POINT | cia402.CHANGE_SET_IMMEDIATELY
         if relative:

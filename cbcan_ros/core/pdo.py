@@ -214,7 +214,8 @@ class PdoService:
         So no frame undoes the SDO write (a stop by SDO, then a frame with the controlword
         that ran the drive): one waiting for the next SYNC goes out carrying them, and while
         SYNC is produced a synchronous RPDO's frame is sent again at once, since the device
-        keeps the last one it received until the next SYNC applies it.
+        keeps the last one it received until the next SYNC applies it; at shutdown too (the
+        drives' stops are written after this service stopped, SYNC goes on until after them).
         """
         resend = []
         with self._lock:
@@ -230,10 +231,10 @@ class PdoService:
                                                       mapped)
                 except ValueError:  # mapped at another size: no frame of ours carries them
                     continue
-                if mapping.synchronous and self._sync.producing and not self._closing:
+                if mapping.synchronous and self._sync.producing:
                     resend.append((mapping, device.last_sent[number]))
         for mapping, frame in resend:
-            self._send(mapping, frame)
+            self._send(mapping, frame, stopping=True)
 
     def _prepare(self, node_id: int, number: int, values: Sequence[EntryValue], data: bytes):
         """Return (mapping, frame) to send, or the SdoResult that refuses the write."""
@@ -286,9 +287,10 @@ class PdoService:
                                          f'{mapping.name} maps {entry.label}: {refusal}')
         return None
 
-    def _send(self, mapping: PdoMapping, frame: bytes) -> SdoResult:
+    def _send(self, mapping: PdoMapping, frame: bytes, stopping: bool = False) -> SdoResult:
+        """Send ``frame``; ``stopping``: a stop's frame, sent even once shutdown has begun."""
         with self._lock:
-            if self._closing:
+            if self._closing and not stopping:
                 return SdoResult.failed(f'{SHUTTING_DOWN}; nothing was sent')
         try:
             self._network.send_message(mapping.cob_id, frame)
@@ -325,6 +327,7 @@ class PdoService:
                 device.wanted += 1
                 if boot:
                     device.boots = device.wanted
+                    device.last_sent.clear()  # its RPDOs hold nothing of before
                 self._lock.notify_all()
 
     def _read_mappings(self) -> None:
