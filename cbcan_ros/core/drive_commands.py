@@ -9,6 +9,7 @@ runs per drive: a new command, move or set-point replaces the one running, which
 """
 
 import asyncio
+import contextlib
 import contextvars
 from typing import Callable, Dict, Optional
 
@@ -20,6 +21,8 @@ from .drive_status import DriveResult
 SEND_TIMEOUT = 1.0
 # How long a cancelled move waits for the halted axis to stand still before it answers.
 HALT_WAIT = 2.0
+# How long enable waits for a halted axis to stand before it holds it where it is.
+STANDSTILL_WAIT = 0.5
 # The drive's re-reads (``read_wanted``) when the running sequence was asked for; None for
 # a stop, which goes to whatever drive is there.
 READS_AT_START: contextvars.ContextVar = contextvars.ContextVar('reads_at_start')
@@ -236,7 +239,12 @@ class DriveCommands:
         self._service.set_enabled(drive, False)
         if (drive.controlword & cia402.HALT
                 and self._service.status(drive.node_id).state == cia402.OPERATION_ENABLED):
-            await self._until(drive, _standing)  # held where it stands, not where it slows
+            # Held where it stands, not where it slows. Bit 10 says a halted drive stands in
+            # the profile modes only (the cyclic ones leave it to the vendor), and a velocity
+            # read may never be exactly 0: waited for, then the axis is held where it is.
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._until(
+                    drive, lambda s: s.target_reached or s.velocity == 0), STANDSTILL_WAIT)
         held = await self._change_mode(drive, mode or self._service.status(drive.node_id).mode)
         self._service.set_halted(drive, '')
         status = await self._reach(drive, cia402.OPERATION_ENABLED,
