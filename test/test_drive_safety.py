@@ -494,7 +494,7 @@ def test_the_drive_watches_the_gateway_and_stops_by_itself_when_it_is_killed(rig
     wait_until(lambda: axis.drive.value(CONSUMER_HEARTBEAT, 1) == entry, ANSWER,
                'the drive holding 0x1016:1 = 0x006405DC')
     # After a boot the drive has its default (no consumer): the gateway writes it again.
-    booted = axis.recorder.mark()
+    booted, shown = axis.recorder.mark(), len(axis.states)
     answer = call(axis.client(NmtCommand, 'nmt_command'), NmtCommand.Request(
         node_id=NODE, command=129), 'nmt reset node', axis.node)
     assert answer.success, answer.message
@@ -503,6 +503,11 @@ def test_the_drive_watches_the_gateway_and_stops_by_itself_when_it_is_killed(rig
     axis.recorder.first(consumer_write, '0x1016:1 written again after the boot', booted)
     wait_until(lambda: axis.drive.value(CONSUMER_HEARTBEAT, 1) == entry, ANSWER,
                'the drive holding 0x1016:1 again')
+    # The gateway's re-read ends just after that write: UNKNOWN until then, and enable
+    # refused. drive_state tells its end (in order): the drive shown again after UNKNOWN.
+    axis.wait_state('UNKNOWN', shown)
+    wait_until(lambda: axis.latest().state == 'SWITCH_ON_DISABLED', ANSWER,
+               'the drive shown again, read afresh after its boot')
     axis.enable_moving()
     killed = axis.recorder.mark()
     axis.node.process.send_signal(signal.SIGKILL)  # no shutdown code runs
