@@ -7,11 +7,13 @@ Shutdown (SIGINT, SIGTERM or ``destroy_node``) answers every waiting call before
 away: ROS can only deliver an answer while the node still exists.
 """
 
+import contextlib
 import os
+import select
 import signal
 import sys
 import threading
-from typing import Callable
+from typing import Callable, List
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -89,15 +91,24 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
     waiting call is answered while ROS can still deliver it. The process ends within
     ``SHUTDOWN_LIMIT`` of the signal, also after this returns: call it as a program's last act.
     """
-    stop = threading.Event()
+    # The handler runs in the main thread between any two of its bytecodes, so it takes no
+    # lock: setting an Event there once deadlocked a node whose main thread was inside that
+    # Event's wait, holding its lock (a fresh-clone run; the node never began shutting down).
+    signalled: List[int] = []
 
     def on_signal(signum, _frame) -> None:
-        if stop.is_set():
+        if signalled:
             os._exit(128 + signum)  # the impatient second Ctrl-C: no cleanup, no traceback
-        stop.set()
+        signalled.append(signum)
 
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, on_signal)
+    # Whichever thread the kernel hands a signal to, Python writes its number here, which
+    # wakes the main thread waiting on this pipe to run the handler.
+    wake_read, wake_write = os.pipe()
+    os.set_blocking(wake_read, False)
+    os.set_blocking(wake_write, False)
+    signal.set_wakeup_fd(wake_write, warn_on_full_buffer=False)
     # rclpy's own handler would shut the context down first, and a node without a context
     # can answer nobody: shutdown is ours, in order.
     try:
@@ -113,6 +124,7 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
     spinning = threading.Event()
     spinning.set()
     broken = []
+    ended = threading.Event()  # the executor's thread ended (the main thread only reads it)
 
     def spin() -> None:
         failures = 0
@@ -132,11 +144,16 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
                         node.get_logger().fatal(f'the executor keeps failing: {error!r}')
                         return
         finally:
-            stop.set()
+            ended.set()
+            with contextlib.suppress(BlockingIOError):
+                os.write(wake_write, b'\0')
 
     spinner = threading.Thread(target=spin, name='executor', daemon=True)
     spinner.start()
-    stop.wait()  # the main thread only waits: signal handlers run here at once
+    while not (signalled or ended.is_set()):  # the main thread only waits
+        select.select([wake_read], [], [], SPIN_CHECK)
+        with contextlib.suppress(BlockingIOError):
+            os.read(wake_read, 512)
     node.get_logger().info('shutting down: answering waiting calls')
     overrun = threading.Timer(SHUTDOWN_LIMIT, give_up_shutdown, (node, program))
     overrun.daemon = True
