@@ -2,7 +2,8 @@
 
 Every pdo_write gets exactly one answer, whether the bus goes down before it is sent, while a
 synchronous RPDO waits for its SYNC, or after; SYNC stops while the bus is down and comes back
-with it, and the mapping is read again once the device is heard again.
+with it, and the mapping is read again once the device is heard again. A send that fails
+while RPDOs wait for their SYNC leaves the gateway able to send once the adapter works again.
 """
 
 import threading
@@ -101,3 +102,39 @@ def test_sync_stops_while_the_bus_is_down_and_resumes_with_it(rig):
                                entries=[PdoEntry(index=0x2002, value=77.0)])
         return written.success and device.value(0x2002) == (77).to_bytes(4, 'little')
     wait_until(applied, RECOVERY, 'a synchronous RPDO applied after the bus came back')
+
+
+def test_a_send_failing_while_a_write_waits_for_its_sync_answers_both_and_sending_goes_on(
+        make_gateway):
+    # Once a defect: the failing send's own thread told SYNC the bus was down, which sent the
+    # waiting RPDO from that thread while it still held canopen's send lock: the gateway
+    # never sent a frame again. A long SYNC period keeps the write waiting meanwhile.
+    channel = new_channel()
+    faults = FaultController.get(channel)
+    device = DurandDevice(NODE, channel=channel, pdos=PDOS)
+    device.start()
+    try:
+        gateway = make_gateway(can__interface='faulty', can__channel=channel,
+                               simulation__devices=None, nodes=[NODE], pdo__nodes=[NODE],
+                               sync__period=2.0, node_10__eds=EDS)
+        wait_until(lambda: gateway.node.gateway.pdo.mappings(NODE)[1], PROMPT,
+                   'the mapping read')
+        pdo = gateway.node.gateway.pdo
+        while True:  # until one write is seen waiting (one may come just as its SYNC did)
+            waiting = gateway.call_async('pdo_write', node_id=NODE, pdo=2,
+                                         entries=[PdoEntry(index=0x2002, value=5.0)])
+            wait_until(lambda w=waiting: pdo._pending_sync or w.done(), PROMPT,
+                       'the write waiting for its SYNC')
+            if not waiting.done():
+                break
+        faults.fail_send('transmit buffer full')
+        nmt = gateway.call('nmt_command', node_id=NODE, command=1)
+        assert not nmt.success and 'transmit buffer full' in nmt.message, nmt.message
+        written = wait_for_future(waiting, PROMPT)
+        assert not written.success and 'CAN bus is down' in written.message, written.message
+        faults.clear()
+        wait_until(lambda: gateway.call('nmt_command', node_id=NODE, command=1).success,
+                   RECOVERY, 'NMT sent again')
+        wait_until(lambda: device.state == 5, RECOVERY, 'the device OPERATIONAL')
+    finally:
+        device.stop()

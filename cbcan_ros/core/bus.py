@@ -133,6 +133,7 @@ class BusSupervisor:
         self._reason = 'not opened yet'
         self._opened_before = False
         self._down_logged = False
+        self._told_up = False  # what the listeners were told last
         self._first_attempt = threading.Event()
         self._fault: Optional[str] = None
         self._stopping = False
@@ -244,11 +245,18 @@ class BusSupervisor:
                 raise BusDown(f'periodic sending failed: {error}') from error
 
     def _report_fault(self, bus: can.BusABC, reason: str) -> None:
+        """Take a failed send as a fault of ``bus``: sends fail at once from now on.
+
+        The bus thread closes it and tells the listeners, not the sending thread: that may
+        hold its caller's locks (canopen's send lock, a PDO frame lock), which a listener
+        sending a frame (SYNC's waiting RPDOs) would wait for forever.
+        """
         with self._lock:
             if self._bus is not bus or not self._up:
                 return
             self._fault = reason
-        self._going_down(reason)
+            self._up = False
+            self._reason = reason
 
     def _run(self) -> None:
         retry = FIRST_RETRY
@@ -379,6 +387,7 @@ class BusSupervisor:
             self._down_logged = False
             self._bus = bus
             self._up = True
+            self._told_up = True
             self._fault = None
             self._reason = ''
         if reopened:
@@ -392,7 +401,8 @@ class BusSupervisor:
         with self._lock:
             if self._stopping:
                 return
-            changed = self._up or self._reason != reason
+            changed = self._told_up or self._reason != reason
+            self._told_up = False
             log = not self._down_logged
             self._down_logged = True
             self._up = False
