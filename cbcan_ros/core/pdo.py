@@ -65,6 +65,7 @@ class _Device:
     wanted: int = 0       # mapping reads asked for (first heard, every boot-up)
     done: int = 0         # the request the current mapping answers
     boots: int = 0        # boot-ups asked to configure
+    life: int = 0         # boot-ups heard: each wipes the RPDOs' frames
     failed_at: float = 0.0
     mapping_text: str = 'not read yet'
     received: int = 0
@@ -91,14 +92,19 @@ class PdoService:
         self._protection = write_protection
         self._sync = sync
         self._configure = configure
-        self._lock = threading.Condition()
+        self._lock = threading.Condition()  # reentrant (an RLock)
+        # Held from reading a frame to send until it is sent, so the last frame the device
+        # gets is always the newest (a SYNC flush of a drive's run frame never follows the
+        # frame of its stop). Taken before the lock, never while holding it.
+        self._frames = threading.Lock()
         self._devices = {node_id: _Device(node_id, dictionaries.get(node_id))
                          for node_id in sorted(set(node_ids))}
         self._by_cob: Dict[int, PdoMapping] = {}
         self._subscribed: set = set()
         self._listeners: List[Callable[[ReceivedPdo], None]] = []
         self._closing = False
-        self._pending_sync: Dict[Tuple[int, int], List[Future]] = {}
+        # The writes waiting for a SYNC, each with the boot-ups of its device before it.
+        self._pending_sync: Dict[Tuple[int, int], List[Tuple[Future, int]]] = {}
         self._thread = threading.Thread(target=self._read_mappings, name='pdo-mappings',
                                         daemon=True)
 
@@ -127,7 +133,7 @@ class PdoService:
             self._by_cob.clear()
             self._follow_cob_ids()
         for futures in pending.values():
-            for future in futures:
+            for future, _life in futures:
                 answer(future, SdoResult.failed(f'{SHUTTING_DOWN}; it was not sent'))
         for node_id in self._devices:
             self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
@@ -171,10 +177,7 @@ class PdoService:
 
     def refuse(self, node_id: int, problem: str) -> None:
         """Count (and log once per kind) a write refused before it reached :meth:`write`."""
-        with self._lock:
-            device = self._devices.get(node_id)
-            if device is not None:
-                device.refused += 1
+        self._refused(node_id, SdoResult.failed(problem))
         self.log_refusal(node_id, problem)
 
     def log_refusal(self, node_id: int, problem: str) -> None:
@@ -188,25 +191,29 @@ class PdoService:
         Resolves once the frame went out (a synchronous RPDO: after the next SYNC) or why
         not; never raises.
         """
-        result = self._prepare(node_id, number, values, data)
-        if isinstance(result, SdoResult):
-            with self._lock:
-                device = self._devices.get(node_id)
-                if device is not None:
-                    device.refused += 1
-            return resolved(result)
-        mapping, frame = result
-        future: Future = Future()
+        checked = self._check(node_id, number, values, data)
+        if isinstance(checked, SdoResult):
+            return resolved(self._refused(node_id, checked))
+        mapping = checked
         if mapping.synchronous and self._sync.producing:
+            future: Future = Future()
+            key = (node_id, number)
             with self._lock:
-                key = (node_id, number)
+                frame = self._merge(mapping, values, data)
+                if isinstance(frame, SdoResult):
+                    return resolved(self._refused(node_id, frame))
                 first = key not in self._pending_sync
-                self._pending_sync.setdefault(key, []).append(future)
+                self._pending_sync.setdefault(key, []).append(
+                    (future, self._devices[node_id].life))
             if first and not self._sync.after_next_sync(lambda: self._flush(key, mapping)):
                 self._flush(key, mapping)  # SYNC is paused (bus down): fails at once
             return future
-        answer(future, self._send(mapping, frame))
-        return future
+        with self._frames:
+            with self._lock:
+                frame = self._merge(mapping, values, data)
+            if isinstance(frame, SdoResult):
+                return resolved(self._refused(node_id, frame))
+            return resolved(self._send(mapping, frame))
 
     def written_by_sdo(self, node_id: int, values: Sequence[EntryValue]) -> None:
         """Put ``values``, about to be written to ``node_id`` by SDO, into its RPDOs' frames.
@@ -217,27 +224,28 @@ class PdoService:
         keeps the last one it received until the next SYNC applies it; at shutdown too (the
         drives' stops are written after this service stopped, SYNC goes on until after them).
         """
-        resend = []
-        with self._lock:
-            device = self._devices.get(node_id)
-            for number, mapping in (device.rpdos.items() if device else ()):
-                mapped = [value for value in values if any(
-                    (entry.index, entry.subindex) == (value.index, value.subindex)
-                    and not entry.dummy for entry in mapping.entries)]
-                if not mapped or number not in device.last_sent:
-                    continue  # a frame never sent is built afresh by its next write
-                try:
-                    device.last_sent[number] = encode(mapping, device.last_sent[number],
-                                                      mapped)
-                except ValueError:  # mapped at another size: no frame of ours carries them
-                    continue
-                if mapping.synchronous and self._sync.producing:
-                    resend.append((mapping, device.last_sent[number]))
-        for mapping, frame in resend:
-            self._send(mapping, frame, stopping=True)
+        with self._frames:  # a SYNC flush of the frame before these values cannot come last
+            resend = []
+            with self._lock:
+                device = self._devices.get(node_id)
+                for number, mapping in (device.rpdos.items() if device else ()):
+                    mapped = [value for value in values if any(
+                        (entry.index, entry.subindex) == (value.index, value.subindex)
+                        and not entry.dummy for entry in mapping.entries)]
+                    if not mapped or number not in device.last_sent:
+                        continue  # a frame never sent is built afresh by its next write
+                    try:
+                        device.last_sent[number] = encode(mapping, device.last_sent[number],
+                                                          mapped)
+                    except ValueError:  # mapped at another size: no frame of ours has them
+                        continue
+                    if mapping.synchronous and self._sync.producing:
+                        resend.append((mapping, device.last_sent[number]))
+            for mapping, frame in resend:
+                self._send(mapping, frame, stopping=True)
 
-    def _prepare(self, node_id: int, number: int, values: Sequence[EntryValue], data: bytes):
-        """Return (mapping, frame) to send, or the SdoResult that refuses the write."""
+    def _check(self, node_id: int, number: int, values: Sequence[EntryValue], data: bytes):
+        """Return the mapping of RPDO ``number`` to write, or the SdoResult that refuses it."""
         if node_id not in self._devices:
             served = ', '.join(map(str, self._devices)) or 'none'
             return SdoResult.failed(f'node_id {node_id} is not in the parameter pdo.nodes '
@@ -260,14 +268,30 @@ class PdoService:
         if data and len(data) != mapping.size:
             return SdoResult.failed(f'data has {len(data)} bytes, {mapping.name} takes '
                                     f'{mapping.size} ({mapping.bits} bits)')
-        with self._lock:  # read, merge and store at once: concurrent writes lose nothing
-            previous = device.last_sent.get(number) or bytes(mapping.size)
-            try:
-                frame = bytes(data) if data else encode(mapping, previous, values)
-            except ValueError as error:
-                return SdoResult.failed(f'entries: {error}')
-            device.last_sent[number] = frame
-        return mapping, frame
+        return mapping
+
+    def _merge(self, mapping: PdoMapping, values: Sequence[EntryValue], data: bytes):
+        """Store and return the frame with ``values`` (or ``data``), or the SdoResult why not.
+
+        Called with the lock held: read, merge and store at once, so concurrent writes lose
+        nothing.
+        """
+        device = self._devices[mapping.node_id]
+        previous = device.last_sent.get(mapping.number) or bytes(mapping.size)
+        try:
+            frame = bytes(data) if data else encode(mapping, previous, values)
+        except ValueError as error:
+            return SdoResult.failed(f'entries: {error}')
+        device.last_sent[mapping.number] = frame
+        return frame
+
+    def _refused(self, node_id: int, result: SdoResult) -> SdoResult:
+        """Count a write refused by this service; return its answer."""
+        with self._lock:
+            device = self._devices.get(node_id)
+            if device is not None:
+                device.refused += 1
+        return result
 
     def _write_refusal(self, mapping: PdoMapping) -> Optional[SdoResult]:
         if mapping.problem:
@@ -303,14 +327,23 @@ class PdoService:
         return SdoResult.ok()
 
     def _flush(self, key: Tuple[int, int], mapping: PdoMapping) -> None:
-        with self._lock:
-            futures = self._pending_sync.pop(key, [])
-            frame = self._devices[key[0]].last_sent.get(key[1], bytes(mapping.size))
-        if not futures:
-            return
-        result = self._send(mapping, frame)
-        for future in futures:
+        with self._frames:
+            with self._lock:
+                device = self._devices[key[0]]
+                futures = self._pending_sync.pop(key, [])
+                frame = device.last_sent.get(key[1])
+                # Written before a boot: gone with the RPDO's old life, whatever came since.
+                lost = [future for future, life in futures if life != device.life]
+                current = [future for future, life in futures if life == device.life]
+                if frame is None:  # its mapping changed: nothing written is left either
+                    lost, current = lost + current, []
+            result = self._send(mapping, frame) if current else None
+        for future in current:
             answer(future, result)
+        for future in lost:
+            answer(future, SdoResult.failed(f'node {key[0]} booted (or its PDO mapping '
+                                            f'changed) before the SYNC: {mapping.name} was '
+                                            f'not sent'))
 
     @prompt
     def _on_heartbeat(self, can_id: int, data: bytearray, _timestamp: float) -> None:
@@ -328,6 +361,7 @@ class PdoService:
                 if boot:
                     device.boots = device.wanted
                     device.last_sent.clear()  # its RPDOs hold nothing of before
+                    device.life += 1
                 self._lock.notify_all()
 
     def _read_mappings(self) -> None:

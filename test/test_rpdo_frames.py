@@ -1,0 +1,130 @@
+"""The frames of a device's receive PDOs: the last one sent is the newest, none is made up.
+
+A drive keeps the last RPDO frame it received and applies a synchronous one at the next SYNC.
+So the order in which frames of one RPDO leave matters: a stop written into the frame (while
+the drive is stopped by SDO) must not be followed by the older frame that ran it. And a frame
+waiting for the SYNC holds what callers wrote before the device booted: the boot wipes it, and
+nothing else may go out in its place.
+
+The service runs here on a stand-in network and SYNC producer, so each test decides exactly
+when the SYNC comes and when a frame is on its way out.
+"""
+
+import threading
+
+from cbcan_ros.core.nmt import BOOT_UP, HEARTBEAT_COB_BASE
+from cbcan_ros.core.pdo import PdoService
+from cbcan_ros.core.pdo_mapping import EntryValue, parse_mapping
+from cbcan_ros.core.write_protection import WriteProtection
+
+NODE = 7
+COB_ID = 0x200 + NODE
+CONTROLWORD, TARGET = 0x6040, 0x60FF
+RUN, STOP = 0x000F, 0x0002
+WAIT = 15.0
+# Long enough for a sender that does not wait for the frame on its way out to send its own.
+GRACE = 1.0
+
+
+class _Sync:
+    """A SYNC producer that sends its SYNC when the test says (``sync()``)."""
+
+    producing = True
+
+    def __init__(self):
+        self._callbacks = []
+
+    def after_next_sync(self, callback) -> bool:
+        self._callbacks.append(callback)
+        return True
+
+    def sync(self) -> None:
+        callbacks, self._callbacks = self._callbacks, []
+        for callback in callbacks:
+            callback()
+
+
+class _Network:
+    """Keeps the frames sent; ``hold_next()`` keeps the next one on its way until released."""
+
+    def __init__(self):
+        self.frames = []
+        self.on_its_way, self.release = threading.Event(), threading.Event()
+        self._hold = False
+
+    def subscribe(self, *_):
+        pass
+
+    def hold_next(self) -> None:
+        self._hold = True
+
+    def send_message(self, cob_id: int, data: bytes) -> None:
+        if self._hold:
+            self._hold = False
+            self.on_its_way.set()
+            assert self.release.wait(WAIT)
+        self.frames.append((cob_id, bytes(data)))
+
+
+def service_with_a_synchronous_rpdo():
+    """Return (service, network, sync): RPDO 1 of NODE maps the controlword and a target."""
+    network, sync = _Network(), _Sync()
+    service = PdoService(network, [NODE], None, WriteProtection(), sync, {})
+    service._devices[NODE].rpdos = {1: parse_mapping(  # as a mapping read installs it
+        NODE, 'rpdo', 1, COB_ID, 1, 0, [CONTROLWORD << 16 | 0x10, TARGET << 16 | 0x20])}
+    return service, network, sync
+
+
+def controlword(frame: bytes) -> int:
+    return int.from_bytes(frame[:2], 'little')
+
+
+def test_a_stop_written_while_the_sync_frame_is_on_its_way_is_the_last_frame_sent():
+    service, network, sync = service_with_a_synchronous_rpdo()
+    running = service.write(NODE, 1, [EntryValue(CONTROLWORD, 0, RUN), EntryValue(TARGET, 0, 5)])
+    network.hold_next()
+    flush = threading.Thread(target=sync.sync)  # the SYNC thread sends the running frame...
+    flush.start()
+    assert network.on_its_way.wait(WAIT)
+    stopped = threading.Event()  # ...and the drive's stop is written by SDO meanwhile
+
+    def stop():
+        service.written_by_sdo(NODE, [EntryValue(CONTROLWORD, 0, data=STOP.to_bytes(2, 'little'))])
+        stopped.set()
+    threading.Thread(target=stop, daemon=True).start()
+    stopped.wait(GRACE)
+    network.release.set()
+    flush.join(WAIT)
+    assert stopped.wait(WAIT)
+    assert running.result(WAIT).success
+    words = [controlword(data) for cob_id, data in network.frames if cob_id == COB_ID]
+    assert words[-1] == STOP, f'controlwords sent, in order: {[hex(w) for w in words]}'
+
+
+def boot(service) -> None:
+    """Deliver the device's boot-up message."""
+    service._on_heartbeat(HEARTBEAT_COB_BASE + NODE, bytearray([BOOT_UP]), 0.0)
+
+
+def test_a_synchronous_write_whose_device_boots_before_the_sync_is_answered_and_not_sent():
+    service, network, sync = service_with_a_synchronous_rpdo()
+    written = service.write(NODE, 1, [EntryValue(CONTROLWORD, 0, RUN), EntryValue(TARGET, 0, 5)])
+    boot(service)
+    sync.sync()
+    result = written.result(WAIT)
+    assert not result.success and 'booted' in result.message and 'not sent' in result.message, \
+        result.message
+    assert network.frames == [], 'a frame went out in place of the one the boot wiped'
+
+
+def test_a_write_after_the_boot_goes_out_alone_and_the_one_before_is_answered_not_sent():
+    service, network, sync = service_with_a_synchronous_rpdo()
+    before = service.write(NODE, 1, [EntryValue(CONTROLWORD, 0, RUN), EntryValue(TARGET, 0, 5)])
+    boot(service)
+    after = service.write(NODE, 1, [EntryValue(TARGET, 0, 9)])  # the same SYNC's frame
+    sync.sync()
+    result = before.result(WAIT)
+    assert not result.success and 'booted' in result.message, result.message
+    assert after.result(WAIT).success
+    assert network.frames == [(COB_ID, bytes(2) + (9).to_bytes(4, 'little'))], \
+        'the frame after the boot carries what was written before it'
