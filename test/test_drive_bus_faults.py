@@ -3,6 +3,7 @@
 The gateway runs behind ``test/faulty_bus.py`` (python-can's virtual bus with faults on
 command) with one simulated CiA 402 drive (durand) that watches the gateway's heartbeat.
 Pulling the adapter cuts the gateway off in both directions, as an unplugged USB adapter does.
+A drive that boots, or falls silent, during a command is here too.
 """
 
 from concurrent.futures import Future
@@ -16,6 +17,7 @@ import pytest
 from std_msgs.msg import Float64
 from test_drives import CSP, CSV, NODE, PDOS, PP, Rig, WAIT
 
+from cbcan_ros.core import cia402
 from cbcan_ros.core.nmt import NOT_DETECTED
 
 from conftest import wait_for_future, wait_until
@@ -299,6 +301,40 @@ def test_an_enable_under_way_when_the_drive_boots_fails_though_it_is_read_again_
             result.message
         assert axis.drive.drive_state == 'SWITCH_ON_DISABLED'
         assert axis.drive.value(0x6060) != bytes([CSP]), 'the mode was sent to the booted drive'
+    finally:
+        axis.close()
+
+
+@pytest.mark.parametrize('command, word, stopped', [
+    ('quick_stop', cia402.QUICK_STOP, ('QUICK_STOP_ACTIVE', 'SWITCH_ON_DISABLED')),
+    ('disable', cia402.DISABLE_VOLTAGE, ('SWITCH_ON_DISABLED',))])
+def test_a_stop_whose_drive_falls_silent_meanwhile_is_answered_by_its_sdo_confirmation(
+        ros_context, start_durand, command, word, stopped):
+    # Once a defect: the stop then waited for a statusword the gateway no longer takes from
+    # a drive it does not hear, and answered "timed out" though the drive had stopped.
+    axis = Rig(start_durand, **{'heartbeat.timeout': 0.5})
+    try:
+        axis.enable(CSV)
+        axis.target.publish(Float64(data=1.0))
+        wait_until(lambda: axis.drive.velocity > 0, WAIT, 'the drive turning')
+        service = axis.gateway.node.gateway.drives
+        send, silent = service.send, threading.Event()
+
+        def held(drive, values, *args):  # the stop waits its turn, as behind a slow send
+            if values.get(cia402.CONTROLWORD) == word:
+                assert silent.wait(WAIT)
+            return send(drive, values, *args)
+        service.send = held
+        stopping = service.command(NODE, command, 0, 10.0)
+        axis.drive.set_value(0x1017, 0, 0)  # its heartbeat stops; it goes on answering SDOs
+        wait_until(lambda: service.status(NODE).state == 'UNKNOWN', WAIT,
+                   'the drive no longer heard, shown UNKNOWN')
+        silent.set()
+        result = stopping.result(WAIT)
+        assert result.success, result.message
+        assert 'not heard' in result.message and 'written by SDO' in result.message, \
+            result.message
+        assert axis.drive.drive_state in stopped
     finally:
         axis.close()
 

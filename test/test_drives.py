@@ -7,6 +7,7 @@ action. What the drive did is read from the drive itself; conditions are waited 
 generous ceilings, never proved by sleeping.
 """
 
+import contextlib
 import logging
 import math
 import struct
@@ -211,6 +212,46 @@ def test_a_streaming_drive_without_targets_is_halted_and_the_next_target_resumes
     wait_until(lambda: axis.drive.velocity == 700, WAIT, 'the drive moving again')
 
 
+def test_a_resumed_drive_left_without_targets_is_halted_again(rig):
+    # resume's release is delayed on its way (a busy machine) while the command timeout
+    # runs out. Once a defect: resume built its controlword first, the timeout halted in
+    # between, and the late release undid that halt while drive_state still said halted;
+    # no later timeout came, and the drive ran on with nobody sending targets.
+    axis = rig(**{'drives.command_timeout': 0.3})
+    drives = axis.gateway.node.gateway.drives
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=1.0))
+    wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    wait_until(lambda: axis.drive.statusword & 0x100 and axis.drive.velocity == 0, WAIT,
+               'the drive halted by the command timeout, standing')
+    send, halts = drives.send, drives.command_timeouts(NODE)
+
+    def delayed(*args, **options):  # until the timeout halts again, if it can meanwhile
+        with contextlib.suppress(AssertionError):
+            wait_until(lambda: drives.command_timeouts(NODE) > halts, 2.0, 'a timeout halt')
+        return send(*args, **options)
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        drives.send = delayed
+        resumed = axis.command('resume')
+        drives.send = send
+        assert resumed.success, resumed.message
+        watch(bus, frames, released_then_halted, 'the release, then a halt, in RPDO 1')
+    finally:
+        bus.shutdown()
+    wait_until(lambda: axis.drive.statusword & 0x100 and axis.drive.velocity == 0, WAIT,
+               'the resumed drive halted again, standing')
+    wait_until(lambda: axis.states[-1].halted, WAIT, 'drive_state halted')
+
+
+def released_then_halted(frames: list) -> bool:
+    """Return whether RPDO 1 carried a controlword without the halt bit, then one with it."""
+    words = [struct.unpack_from('<H', m.data)[0] for m in frames
+             if m.arbitration_id == 0x200 + NODE]
+    release = next((n for n, word in enumerate(words) if not word & 0x100), None)
+    return release is not None and any(word & 0x100 for word in words[release:])
+
+
 def test_a_target_sent_just_as_the_command_timeout_halts_cannot_undo_the_halt(rig):
     # In CSP the target position goes in RPDO 1 with the controlword. The caller's thread is
     # preempted between building that frame (controlword: run) and sending it, for longer
@@ -224,10 +265,10 @@ def test_a_target_sent_just_as_the_command_timeout_halts_cannot_undo_the_halt(ri
     axis.enable(CSP)
     send, caller, other_sent = gateway.pdo._send, threading.get_ident(), threading.Event()
 
-    def preempted(mapping, frame):
+    def preempted(mapping, frame, **options):
         if threading.get_ident() == caller:
             other_sent.wait(1.0)  # the halt, if it can go before this frame
-        result = send(mapping, frame)
+        result = send(mapping, frame, **options)
         if threading.get_ident() != caller:
             other_sent.set()
         return result
@@ -367,6 +408,43 @@ def move_under_way(axis):
     wait_until(lambda: feedback and feedback[-1].feedback.position > 0, WAIT,
                'move feedback with the drive under way')
     return goal
+
+
+def test_a_move_ends_with_an_answer_when_the_drive_leaves_operation_enabled_by_itself(rig):
+    # Once a defect: the move waited for target reached from a drive no longer enabled, and
+    # the goal was never answered.
+    axis = rig()
+    goal = move_under_way(axis)
+    axis.drive.set_value(0x6040, 0, 0x0002)  # the drive's own quick-stop input, say
+    result = wait_for_future(goal.get_result_async(), WAIT).result
+    assert not result.success, result.message
+    assert 'needs a fresh enable' in result.message, result.message
+    assert 'left OPERATION_ENABLED, or was stopped, during the command' in result.message, \
+        result.message
+    refused = axis.command('halt')
+    assert not refused.success and 'enable' in refused.message, refused.message
+
+
+def test_a_halt_that_finds_the_drive_stopped_by_itself_sends_nothing_that_enables_it(rig):
+    # The drive quick-stops itself between the halt's check and its send. Once a defect: the
+    # halt's controlword (enable operation with bit 8) went out all the same, and the drive
+    # took transition 16 out of QUICK_STOP_ACTIVE: the gateway re-enabled it.
+    axis = rig()
+    axis.drive.set_value(QUICK_STOP_OPTION, 0, struct.pack('<h', 6))  # stays quick-stopped
+    axis.enable(CSV)
+    drives = axis.gateway.node.gateway.drives
+    send = drives.send
+
+    def stopped_first(*args, **options):
+        axis.drive.set_value(0x6040, 0, 0x0002)  # its own quick-stop input, say
+        wait_until(lambda: drives.status(NODE).state == 'QUICK_STOP_ACTIVE', WAIT,
+                   'the gateway seeing the drive quick-stopped')
+        return send(*args, **options)
+    drives.send = stopped_first
+    halted = axis.command('halt')
+    drives.send = send
+    assert not halted.success and 'needs a fresh enable' in halted.message, halted.message
+    assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE'
 
 
 def test_cancelling_a_move_halts_the_drive_and_answers_where_it_stopped(rig):

@@ -14,7 +14,7 @@ import contextvars
 from typing import Callable, Dict, Optional
 
 from . import cia402
-from .drive_checks import lost_problem, SHUTTING_DOWN
+from .drive_checks import ENABLED_COMMANDS, lost_problem, SHUTTING_DOWN, state_problem
 from .drive_status import DriveResult
 
 # The timeout of each SDO a sequence sends (a PDO goes out without an answer).
@@ -26,6 +26,9 @@ STANDSTILL_WAIT = 0.5
 # The drive's re-reads (``read_wanted``) when the running sequence was asked for; None for
 # a stop, which goes to whatever drive is there.
 READS_AT_START: contextvars.ContextVar = contextvars.ContextVar('reads_at_start')
+# Whether the running sequence needs the drive OPERATION_ENABLED by an enable of ours (a move,
+# halt, resume, homing): it ends when the drive leaves that, however it left.
+ENABLED_ONLY: contextvars.ContextVar = contextvars.ContextVar('enabled_only', default=False)
 
 
 class DriveFailed(Exception):
@@ -34,6 +37,10 @@ class DriveFailed(Exception):
     def __init__(self, message: str, abort_code: int = 0):
         super().__init__(message)
         self.abort_code = abort_code
+
+
+class _Unheard(Exception):
+    """A stop's drive stopped heartbeating: the stop goes on by SDO (``_stop``)."""
 
 
 class DriveCommands:
@@ -61,7 +68,8 @@ class DriveCommands:
         stop: it goes to whatever drive is there.
         """
         sequence = getattr(self, f'_{command}')
-        return await self._own(drive, lambda: sequence(drive, mode), timeout, reads)
+        return await self._own(drive, lambda: sequence(drive, mode), timeout, reads,
+                               enabled=command in ENABLED_COMMANDS)
 
     async def move(self, drive, position: int, relative: bool, velocity: int,
                    on_feedback: Optional[Callable], token: object, reads: int) -> object:
@@ -70,7 +78,8 @@ class DriveCommands:
         ``token`` names this move to :meth:`cancel`, which then ends it only while it runs.
         """
         return await self._own(drive, lambda: self._move(drive, position, relative, velocity,
-                                                         on_feedback), None, reads, token)
+                                                         on_feedback), None, reads, token,
+                               enabled=True)
 
     def set_point(self, drive, position: int, reads: int) -> None:
         """Take ``position`` as the next PP set-point (on the loop); the latest one wins."""
@@ -78,7 +87,7 @@ class DriveCommands:
         if self._tasks.get(drive.node_id) in self._streams:
             return  # the running stream takes it next
         stream = asyncio.ensure_future(self._own(drive, lambda: self._stream(drive), None,
-                                                 reads))
+                                                 reads, enabled=True))
         self._streams.add(stream)
         stream.add_done_callback(self._streams.discard)
 
@@ -105,8 +114,7 @@ class DriveCommands:
         await asyncio.gather(*tasks, return_exceptions=True)
 
     async def _own(self, drive, sequence: Callable, timeout: Optional[float],
-                   reads: Optional[int],
-                   token: object = None):
+                   reads: Optional[int], token: object = None, enabled: bool = False):
         task = asyncio.current_task()
         previous = self._tasks.get(drive.node_id)
         if previous is not None and not previous.done():
@@ -115,6 +123,7 @@ class DriveCommands:
         self._tasks[drive.node_id] = task
         self._tokens[task] = token
         READS_AT_START.set(reads)  # this task's own context, and wait_for's
+        ENABLED_ONLY.set(enabled)
         service, node_id = self._service, drive.node_id
         try:
             if timeout:
@@ -153,6 +162,9 @@ class DriveCommands:
     async def _until(self, drive, ok: Callable, fault_ok: bool = False):
         """Return the drive's status once ``ok(status)``; raise when it faults or is lost.
 
+        A sequence that needs the drive enabled (``ENABLED_ONLY``) also ends when it leaves
+        OPERATION_ENABLED (a quick-stop input, another master) or needs a fresh enable.
+
         A drive read again since the sequence started (it booted, or was heard again) is not
         the one the sequence was asked for, whatever its state now.
         """
@@ -166,15 +178,23 @@ class DriveCommands:
                 raise DriveFailed(f'node {drive.node_id} went to {status.state}: error '
                                   f'0x{status.error_code:04X} ({status.error or "reading"})',
                                   0)
+            problem = ENABLED_ONLY.get() and state_problem(status, True, True)
+            if problem:
+                raise DriveFailed(f'{problem} (it left OPERATION_ENABLED, or was stopped, '
+                                  f'during the command)')
             if ok(status):
                 return status
             await woken
 
-    async def _send(self, drive, values: Dict[int, int]) -> int:
-        """Send ``values``; return the statuswords taken before (what a reply must exceed)."""
+    async def _send(self, drive, values: Dict[int, int], resume: bool = False) -> int:
+        """Send ``values``; return the statuswords taken before (what a reply must exceed).
+
+        ``resume``: release the halt with them (``DriveService.send``).
+        """
         mark = drive.updates
         try:
-            sent = self._service.send(drive, values, SEND_TIMEOUT, READS_AT_START.get())
+            sent = self._service.send(drive, values, SEND_TIMEOUT, READS_AT_START.get(),
+                                      resume, ENABLED_ONLY.get())
         except ValueError as error:
             raise DriveFailed(f'node {drive.node_id}: {error}; nothing was sent') from None
         result = await asyncio.wrap_future(sent)
@@ -262,26 +282,34 @@ class DriveCommands:
         return f'node {drive.node_id} is OPERATION_ENABLED in {cia402.mode_name(status.mode)}'
 
     async def _disable(self, drive, _mode: int) -> str:
-        self._service.set_enabled(drive, False)
-        self._service.set_halted(drive, '')
-        if not drive.heard or self._service.status(drive.node_id).state == cia402.UNKNOWN:
-            return await self._stop_unheard(drive, cia402.DISABLE_VOLTAGE)
-        status = await self._reach(drive, cia402.SWITCH_ON_DISABLED,
-                                   lambda s: s.state == cia402.SWITCH_ON_DISABLED or s.faulted,
-                                   fault_ok=True)
-        return f'node {drive.node_id} is {status.state}: its power stage is off'
+        async def heard() -> str:
+            status = await self._reach(
+                drive, cia402.SWITCH_ON_DISABLED,
+                lambda s: s.state == cia402.SWITCH_ON_DISABLED or s.faulted, fault_ok=True)
+            return f'node {drive.node_id} is {status.state}: its power stage is off'
+        return await self._stop(drive, cia402.DISABLE_VOLTAGE, heard)
 
     async def _quick_stop(self, drive, _mode: int) -> str:
+        async def heard() -> str:
+            status = self._service.status(drive.node_id)
+            if _stopped(status) or status.state not in cia402.POWERED:
+                return f'node {drive.node_id} is {status.state}: nothing to stop'
+            mark = await self._send(drive, {cia402.CONTROLWORD: cia402.QUICK_STOP})
+            status = await self._after(drive, mark, _stopped, fault_ok=True)
+            return f'node {drive.node_id} stopped: {status.state}'
+        return await self._stop(drive, cia402.QUICK_STOP, heard)
+
+    async def _stop(self, drive, word: int, heard: Callable) -> str:
+        """Stop the drive with ``heard()``, or with ``word`` by SDO when it is not heard.
+
+        Also when it stops heartbeating during ``heard()``: no statusword would confirm it.
+        """
         self._service.set_enabled(drive, False)
         self._service.set_halted(drive, '')
-        if not drive.heard or self._service.status(drive.node_id).state == cia402.UNKNOWN:
-            return await self._stop_unheard(drive, cia402.QUICK_STOP)
-        status = self._service.status(drive.node_id)
-        if _stopped(status) or status.state not in cia402.POWERED:
-            return f'node {drive.node_id} is {status.state}: nothing to stop'
-        mark = await self._send(drive, {cia402.CONTROLWORD: cia402.QUICK_STOP})
-        status = await self._after(drive, mark, _stopped, fault_ok=True)
-        return f'node {drive.node_id} stopped: {status.state}'
+        if drive.heard and self._service.status(drive.node_id).state != cia402.UNKNOWN:
+            with contextlib.suppress(_Unheard):
+                return await heard()
+        return await self._stop_unheard(drive, word)
 
     async def _stop_unheard(self, drive, word: int) -> str:
         """Send a stop to a drive not heard, by SDO: no statusword can confirm it."""
@@ -304,10 +332,7 @@ class DriveCommands:
         return f'node {drive.node_id} halted at position {position} (drive units)'
 
     async def _resume(self, drive, _mode: int) -> str:
-        self._service.set_halted(drive, '')
-        self._service.set_enabled(drive, True)  # restarts the command timeout
-        word = drive.controlword & ~cia402.HALT
-        mark = await self._send(drive, {cia402.CONTROLWORD: word})
+        mark = await self._send(drive, {}, resume=True)
         await self._after(drive, mark, lambda status: True)
         return f'node {drive.node_id} resumed'
 
@@ -423,9 +448,13 @@ def _check_same_drive(drive, status) -> None:
 
     A drive that booted (or was heard again) is not the one the sequence was asked for,
     whatever its state now: nothing more is sent to it (``DriveService.send`` checks too).
-    A stop (``READS_AT_START`` None) is for whatever drive is there.
+    A stop (``READS_AT_START`` None) is for whatever drive is there, but raises
+    :class:`_Unheard` once that drive is not heard: no statusword will confirm it.
     """
-    problem = lost_problem(drive, READS_AT_START.get(), status)
+    reads = READS_AT_START.get()
+    if reads is None and not drive.heard:
+        raise _Unheard
+    problem = lost_problem(drive, reads, status)
     if problem:
         raise DriveFailed(problem)
 

@@ -278,6 +278,9 @@ class DurandDevice:
         """Boot as after power-on or reset: objects in ``clear`` return to their defaults."""
         od = self.node.object_dictionary
         od.write(HEARTBEAT_INDEX, 0, 0)  # no heartbeat of the old state around the boot-up
+        # Nor a PDO: a device taking a reset sends nothing more before its boot-up, while
+        # restoring its defaults here would send every TPDO of an operational one.
+        self.node.nmt.set_state(StateEnum.STOPPED)
         restore_defaults(od, clear, keep=HEARTBEAT_INDEX)
         self._drop_sdo_transfers()
         self._guard_toggle = 0
