@@ -161,6 +161,30 @@ def test_send_failure_takes_the_bus_down_and_it_recovers(start_faulty):
     gateway.wait_for_states({2: 'OPERATIONAL'})
 
 
+def test_a_failing_bus_status_listener_neither_ends_supervision_nor_deafens_the_rest(
+        start_faulty, caplog):
+    # Listeners are told on the bus thread, which also reopens the bus: one that raised
+    # used to end that thread, and the bus stayed down for good.
+    caplog.set_level(logging.INFO, logger=BUS_LOGGER)
+    gateway, faults = start_faulty()
+    gateway.wait_for_states({2: 'PRE_OPERATIONAL', 3: 'PRE_OPERATIONAL'})
+    bus = gateway.node.gateway.bus
+    told = []
+
+    def failing(status):
+        raise RuntimeError('a listener bug')
+
+    bus.add_listener(failing)
+    bus.add_listener(told.append)
+    faults.fail_receive('adapter unplugged')
+    wait_until(lambda: any(not status.up for status in told), PROMPT, 'the bus down told')
+    wait_for_recovery(gateway)
+    assert told[-1].up
+    failures = [r for r in caplog.records
+                if r.name == BUS_LOGGER and 'a bus status listener failed' in r.message]
+    assert len(failures) == 1, [r.message for r in failures]
+
+
 def test_bus_off_reopens_the_bus(start_faulty):
     gateway, faults = start_faulty()
     wait_until(lambda: read_device_type(gateway).success, PROMPT, 'a first read')

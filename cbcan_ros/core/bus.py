@@ -372,11 +372,11 @@ class BusSupervisor:
                 self._handler_failed(error)
             self._dispatched += 1
 
-    def _handler_failed(self, error: Exception) -> None:
-        kind = type(error).__name__
+    def _handler_failed(self, error: Exception, what: str = 'a frame handler') -> None:
+        kind = (what, type(error).__name__)
         if kind not in self._listener_errors:
             self._listener_errors.add(kind)
-            LOGGER.exception('a frame handler failed (%s); receiving goes on', kind)
+            LOGGER.exception('%s failed (%s); the bus goes on', what, kind[1])
 
     def _coming_up(self, bus: can.BusABC) -> None:
         with self._lock:
@@ -429,6 +429,11 @@ class BusSupervisor:
                     port.close()
 
     def _notify(self) -> None:
+        # Called on the bus thread: a listener that raised would end it, and the bus would
+        # never be reopened.
         status = self.status
         for listener in self._listeners:
-            listener(status)
+            try:
+                listener(status)
+            except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest
+                self._handler_failed(error, 'a bus status listener')
