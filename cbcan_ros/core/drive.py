@@ -237,14 +237,16 @@ class DriveService:
     # Used by the command sequences (drive_commands), on the drives' event loop.
 
     def send(self, drive: DriveRecord, values: Dict[int, int], timeout: float,
-             reads: Optional[int], resume: bool = False, enabled: bool = False) -> 'Future':
+             reads: Optional[int], enabled: bool = False,
+             halt: Optional[str] = None) -> 'Future':
         """Send ``values`` to ``drive`` (the controlword kept as the drive's commanded one).
 
         Nothing when the drive was read again since ``reads`` (``checks.lost_problem``), or
         with ``enabled`` when it is no longer enabled by us: a step of a move or a halt would
-        enable one that stopped itself. ``resume``: release the halt and restart the command
-        timeout in the same step, so no timeout halt comes between (it would stay shown,
-        and stop later ones).
+        enable one that stopped itself. ``halt``: set the halt bit (naming who, as
+        ``set_halted``) or release it ('') with them, shown only once it is sent. A release
+        restarts the command timeout in the same step, so no timeout halt comes between (it
+        would stay shown, and stop later ones).
         """
         with drive.sending:
             with self._lock:
@@ -253,10 +255,13 @@ class DriveService:
                            or (enabled and checks.state_problem(status, True, True)))
                 if problem:
                     return resolved(SdoResult.failed(problem))
-                if resume:
-                    self.set_halted(drive, '')
-                    drive.last_target = time.monotonic()
-                    values = {**values, cia402.CONTROLWORD: drive.controlword & ~cia402.HALT}
+                if halt is not None:
+                    self.set_halted(drive, halt)
+                    if not halt:
+                        drive.last_target = time.monotonic()
+                    word = (drive.controlword | cia402.HALT if halt
+                            else drive.controlword & ~cia402.HALT)
+                    values = {**values, cia402.CONTROLWORD: word}
                 if cia402.CONTROLWORD in values:
                     drive.controlword = values[cia402.CONTROLWORD]
             return drive.objects.write(values, timeout)

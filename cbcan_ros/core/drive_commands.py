@@ -186,15 +186,15 @@ class DriveCommands:
                 return status
             await woken
 
-    async def _send(self, drive, values: Dict[int, int], resume: bool = False) -> int:
+    async def _send(self, drive, values: Dict[int, int], halt: Optional[str] = None) -> int:
         """Send ``values``; return the statuswords taken before (what a reply must exceed).
 
-        ``resume``: release the halt with them (``DriveService.send``).
+        ``halt``: set or release the halt with them (``DriveService.send``).
         """
         mark = drive.updates
         try:
             sent = self._service.send(drive, values, SEND_TIMEOUT, READS_AT_START.get(),
-                                      resume, ENABLED_ONLY.get())
+                                      ENABLED_ONLY.get(), halt)
         except ValueError as error:
             raise DriveFailed(f'node {drive.node_id}: {error}; nothing was sent') from None
         result = await asyncio.wrap_future(sent)
@@ -323,16 +323,14 @@ class DriveCommands:
                 f'(the drive confirmed the write; no statusword shows its state)')
 
     async def _halt(self, drive, _mode: int) -> str:
-        self._service.set_halted(drive, 'command')
-        word = drive.controlword | cia402.HALT
-        mark = await self._send(drive, {cia402.CONTROLWORD: word})
+        mark = await self._send(drive, {}, halt='command')
         await self._after(drive, mark, _standing)
         await self._read_position(drive)
         position = self._service.status(drive.node_id).position
         return f'node {drive.node_id} halted at position {position} (drive units)'
 
     async def _resume(self, drive, _mode: int) -> str:
-        mark = await self._send(drive, {}, resume=True)
+        mark = await self._send(drive, {}, halt='')
         await self._after(drive, mark, lambda status: True)
         return f'node {drive.node_id} resumed'
 
@@ -431,10 +429,8 @@ class DriveCommands:
 
     async def _halt_after_cancel(self, drive, reason: str) -> str:
         """Halt the drive of a cancelled move; return the answer with where it stopped."""
-        self._service.set_halted(drive, 'cancel')
         try:
-            mark = await self._send(drive, {
-                cia402.CONTROLWORD: drive.controlword | cia402.HALT})
+            mark = await self._send(drive, {}, halt='cancel')
             await asyncio.wait_for(self._after(drive, mark, _standing), HALT_WAIT)
         except (DriveFailed, TimeoutError) as error:
             return f'{reason}; the halt was not confirmed: {error or "no standstill"}'
