@@ -444,6 +444,7 @@ def test_a_halt_that_finds_the_drive_stopped_by_itself_sends_nothing_that_enable
     halted = axis.command('halt')
     drives.send = send
     assert not halted.success and 'needs a fresh enable' in halted.message, halted.message
+    assert halted.message.startswith(f'node {NODE} is QUICK_STOP_ACTIVE'), halted.message
     assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE'
     # Nothing was sent, so nothing shows it halted (it once did, and said so until enabled).
     assert not drives.status(NODE).halted

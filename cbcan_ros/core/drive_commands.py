@@ -199,7 +199,10 @@ class DriveCommands:
             raise DriveFailed(f'node {drive.node_id}: {error}; nothing was sent') from None
         result = await asyncio.wrap_future(sent)
         if not result.success:
-            raise DriveFailed(f'node {drive.node_id}: {result.message}', result.abort_code)
+            # The send's own refusals name the node already; the SDO layer's do not.
+            named = result.message.startswith(f'node {drive.node_id} ')
+            raise DriveFailed(result.message if named
+                              else f'node {drive.node_id}: {result.message}', result.abort_code)
         if cia402.STATUSWORD not in drive.objects.mapped_feedback():
             self._service.request_feedback(drive)
         return mark
