@@ -320,10 +320,10 @@ def test_a_stop_whose_drive_falls_silent_meanwhile_is_answered_by_its_sdo_confir
         service = axis.gateway.node.gateway.drives
         send, silent = service.send, threading.Event()
 
-        def held(drive, values, *args):  # the stop waits its turn, as behind a slow send
+        def held(drive, values, *args, **options):  # the stop waits, as behind a slow send
             if values.get(cia402.CONTROLWORD) == word:
                 assert silent.wait(WAIT)
-            return send(drive, values, *args)
+            return send(drive, values, *args, **options)
         service.send = held
         stopping = service.command(NODE, command, 0, 10.0)
         axis.drive.set_value(0x1017, 0, 0)  # its heartbeat stops; it goes on answering SDOs

@@ -237,8 +237,8 @@ class DriveService:
     # Used by the command sequences (drive_commands), on the drives' event loop.
 
     def send(self, drive: DriveRecord, values: Dict[int, int], timeout: float,
-             reads: Optional[int], enabled: bool = False,
-             halt: Optional[str] = None) -> 'Future':
+             reads: Optional[int], enabled: bool = False, halt: Optional[str] = None,
+             by_sdo: bool = False) -> 'Future':
         """Send ``values`` to ``drive`` (the controlword kept as the drive's commanded one).
 
         Nothing when the drive was read again since ``reads`` (``checks.lost_problem``), or
@@ -246,7 +246,7 @@ class DriveService:
         enable one that stopped itself. ``halt``: set the halt bit (naming who, as
         ``set_halted``) or release it ('') with them, shown only once it is sent. A release
         restarts the command timeout in the same step, so no timeout halt comes between (it
-        would stay shown, and stop later ones).
+        would stay shown, and stop later ones). ``by_sdo``: whatever the PDOs map.
         """
         with drive.sending:
             with self._lock:
@@ -264,6 +264,8 @@ class DriveService:
                     values = {**values, cia402.CONTROLWORD: word}
                 if cia402.CONTROLWORD in values:
                     drive.controlword = values[cia402.CONTROLWORD]
+            if by_sdo:
+                return drive.objects.write_by_sdo(values, timeout)
             return drive.objects.write(values, timeout)
 
     def when_updated(self, drive: DriveRecord, wake: Callable[[], None]) -> None:

@@ -316,8 +316,8 @@ class DriveCommands:
 
     async def _stop_unheard(self, drive, word: int) -> str:
         """Send a stop to a drive not heard, by SDO: no statusword can confirm it."""
-        result = await asyncio.wrap_future(drive.objects.write_by_sdo(
-            {cia402.CONTROLWORD: word}, SEND_TIMEOUT))
+        result = await asyncio.wrap_future(self._service.send(
+            drive, {cia402.CONTROLWORD: word}, SEND_TIMEOUT, None, by_sdo=True))
         if not result.success:
             raise DriveFailed(f'node {drive.node_id} is not heard, and the controlword '
                               f'0x{word:04X} was not taken: {result.message}',
