@@ -128,3 +128,18 @@ def test_a_write_after_the_boot_goes_out_alone_and_the_one_before_is_answered_no
     assert after.result(WAIT).success
     assert network.frames == [(COB_ID, bytes(2) + (9).to_bytes(4, 'little'))], \
         'the frame after the boot carries what was written before it'
+
+
+def test_a_write_after_a_boot_that_moved_the_rpdo_goes_out_on_its_new_cob_id():
+    service, network, sync = service_with_a_synchronous_rpdo()
+    before = service.write(NODE, 1, [EntryValue(CONTROLWORD, 0, RUN), EntryValue(TARGET, 0, 5)])
+    boot(service)
+    moved = COB_ID + 0x100  # the device's configuration after the boot, read as mappings are
+    service._devices[NODE].rpdos = {1: parse_mapping(
+        NODE, 'rpdo', 1, moved, 1, 0, [CONTROLWORD << 16 | 0x10, TARGET << 16 | 0x20])}
+    after = service.write(NODE, 1, [EntryValue(TARGET, 0, 9)])
+    sync.sync()
+    assert not before.result(WAIT).success
+    assert after.result(WAIT).success
+    assert network.frames == [(moved, bytes(2) + (9).to_bytes(4, 'little'))], \
+        'the frame went out on the COB-ID the RPDO had before the boot'

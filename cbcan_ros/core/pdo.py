@@ -205,8 +205,8 @@ class PdoService:
                 first = key not in self._pending_sync
                 self._pending_sync.setdefault(key, []).append(
                     (future, self._devices[node_id].life))
-            if first and not self._sync.after_next_sync(lambda: self._flush(key, mapping)):
-                self._flush(key, mapping)  # SYNC is paused (bus down): fails at once
+            if first and not self._sync.after_next_sync(lambda: self._flush(key)):
+                self._flush(key)  # SYNC is paused (bus down): fails at once
             return future
         with self._frames:
             with self._lock:
@@ -326,24 +326,27 @@ class PdoService:
             self._devices[mapping.node_id].sent += 1
         return SdoResult.ok()
 
-    def _flush(self, key: Tuple[int, int], mapping: PdoMapping) -> None:
+    def _flush(self, key: Tuple[int, int]) -> None:
+        node_id, number = key
         with self._frames:
             with self._lock:
-                device = self._devices[key[0]]
+                device = self._devices[node_id]
                 futures = self._pending_sync.pop(key, [])
-                frame = device.last_sent.get(key[1])
+                frame = device.last_sent.get(number)
+                # The mapping as it is now: a boot may have moved the RPDO since the first write.
+                mapping = device.rpdos.get(number)
                 # Written before a boot: gone with the RPDO's old life, whatever came since.
                 lost = [future for future, life in futures if life != device.life]
                 current = [future for future, life in futures if life == device.life]
-                if frame is None:  # its mapping changed: nothing written is left either
+                if frame is None or mapping is None:  # its mapping changed: nothing is left
                     lost, current = lost + current, []
             result = self._send(mapping, frame) if current else None
         for future in current:
             answer(future, result)
         for future in lost:
-            answer(future, SdoResult.failed(f'node {key[0]} booted (or its PDO mapping '
-                                            f'changed) before the SYNC: {mapping.name} was '
-                                            f'not sent'))
+            answer(future, SdoResult.failed(f'node {node_id} booted (or its PDO mapping '
+                                            f'changed) before the SYNC: its RPDO {number} '
+                                            f'was not sent'))
 
     @prompt
     def _on_heartbeat(self, can_id: int, data: bytearray, _timestamp: float) -> None:
