@@ -55,6 +55,7 @@ class FaultController:
         self._open_error: Optional[str] = None
         self._send_error: Optional[str] = None
         self._sends_left = 0
+        self.closing = None  # an Event: closing a bus waits for it (a driver slow to close)
         self._buses: List['FaultyBus'] = []
         self._sent: List[can.Message] = []
         self.open_count = 0
@@ -233,6 +234,9 @@ class FaultyBus(can.BusABC):
         """Close the bus; a receive fault ends with it (safe to call more than once)."""
         if self._is_shutdown:
             return
+        closing = self._controller.closing
+        if closing is not None:
+            closing.wait()
         super().shutdown()
         self._inner.shutdown()
         self._controller._closed(self)

@@ -8,6 +8,7 @@ gateway's adapter only, as a pulled cable or a dead USB adapter does on a robot.
 import logging
 import pathlib
 import struct
+import threading
 
 import pytest
 
@@ -120,6 +121,27 @@ def test_pending_and_queued_calls_are_answered_at_once_when_the_bus_goes_down(st
     for response in answers:
         assert not response.success
         assert 'CAN bus is down' in response.message, response.message
+    faults.clear()
+    wait_for_recovery(gateway)
+
+
+def test_calls_are_answered_while_the_driver_is_still_closing_the_dead_adapter(start_faulty):
+    # Once the callers heard only after the driver's shutdown() returned, however long a
+    # dead adapter made it take.
+    gateway, faults = start_faulty()
+    gateway.devices[2].slow_read_delay = SLOW
+    slow = gateway.call_async('sdo_read', node_id=2, index=0x2200, subindex=0, timeout=LONG)
+    wait_until(lambda: any(m.arbitration_id == 0x602 for m in faults.sent), PROMPT,
+               'the slow request on the bus')
+    faults.closing = threading.Event()
+    try:
+        faults.fail_open('adapter gone')
+        faults.fail_receive('adapter unplugged')
+        answer = wait_for_future(slow, PROMPT)
+        assert not answer.success and 'CAN bus is down' in answer.message, answer.message
+        assert faults.buses, 'the driver has finished closing the adapter'
+    finally:
+        faults.closing.set()
     faults.clear()
     wait_for_recovery(gateway)
 

@@ -273,11 +273,14 @@ class BusSupervisor:
             self._note_sends(bus)
             self._coming_up(bus)
             reason = self._receive(bus)
-            self._close(bus)
             if reason is None:
+                self._close(bus)
                 LOGGER.info('CAN bus %s is closed', self.description)
                 return
+            # Told before closing: a driver may take long to close a dead adapter, and the
+            # callers waiting on the bus are answered meanwhile.
             self._going_down(reason)
+            self._close(bus)
             if time.monotonic() - opened >= MAX_RETRY:
                 retry = FIRST_RETRY  # it worked for a while: this is a new fault
             self._wake.wait(retry)
