@@ -185,14 +185,19 @@ def test_read_only_refuses_every_command(rig):
     assert axis.drive.drive_state == 'SWITCH_ON_DISABLED'
 
 
-def test_halt_stops_the_axis_and_resume_lets_targets_through_again(rig):
+@pytest.mark.parametrize('sets_bit_10', [True, False], ids=['bit_10', 'no_bit_10'])
+def test_halt_stops_the_axis_and_resume_lets_targets_through_again(rig, sets_bit_10):
+    # CiA 402 leaves statusword bit 10 to the vendor in the cyclic modes. Once a defect: a
+    # halt in CSV waited for it, and a drive that never sets it there got "timed out".
     axis = rig()
+    axis.drive.cyclic_target_reached = sets_bit_10
     axis.enable(CSV)
     axis.target.publish(Float64(data=1.0))
     wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
-    halted = axis.command('halt')
+    halted = axis.command('halt', timeout=WAIT)
     assert halted.success, halted.message
     assert axis.drive.velocity == 0
+    assert bool(axis.drive.statusword & 0x400) == sets_bit_10
     refused = axis.gateway.node.gateway.drives.target(NODE, 500.0)
     assert not refused.success and 'resume' in refused.message
     assert axis.command('resume').success

@@ -269,7 +269,7 @@ class DriveService:
             return drive.objects.write(values, timeout)
 
     def when_updated(self, drive: DriveRecord, wake: Callable[[], None]) -> None:
-        """Call ``wake()`` on the drives' loop at the next statusword or loss of ``drive``."""
+        """Call ``wake()`` on the drives' loop at the next feedback or loss of ``drive``."""
         with self._lock:
             drive.waiters.append(wake)
 
@@ -400,8 +400,7 @@ class DriveService:
                 self._tell(drive)
         if new.faulted and not old.faulted:
             self._runner.submit(self._read_error(drive))
-        if cia402.STATUSWORD in values or changed:
-            self._wake(drive)
+        self._wake(drive)  # a halt in a cyclic mode waits for a velocity, not a statusword
 
     def on_emcy(self, node_id: int, error_code: int) -> None:
         """Take the error code of an EMCY a drive sent (0: its errors are gone)."""

@@ -326,8 +326,9 @@ class DriveCommands:
                 f'(the drive confirmed the write; no statusword shows its state)')
 
     async def _halt(self, drive, _mode: int) -> str:
+        tpdos = drive.tpdos
         mark = await self._send(drive, {}, halt='command')
-        await self._after(drive, mark, _standing)
+        await self._after(drive, mark, _standing(drive, tpdos))
         await self._read_position(drive)
         position = self._service.status(drive.node_id).position
         return f'node {drive.node_id} halted at position {position} (drive units)'
@@ -432,9 +433,11 @@ class DriveCommands:
 
     async def _halt_after_cancel(self, drive, reason: str) -> str:
         """Halt the drive of a cancelled move; return the answer with where it stopped."""
+        tpdos = drive.tpdos
         try:
             mark = await self._send(drive, {}, halt='cancel')
-            await asyncio.wait_for(self._after(drive, mark, _standing), HALT_WAIT)
+            await asyncio.wait_for(self._after(drive, mark, _standing(drive, tpdos)),
+                                   HALT_WAIT)
         except (DriveFailed, TimeoutError) as error:
             return f'{reason}; the halt was not confirmed: {error or "no standstill"}'
         await self._read_position(drive)
@@ -458,8 +461,22 @@ def _check_same_drive(drive, status) -> None:
         raise DriveFailed(problem)
 
 
-def _standing(status) -> bool:
-    return status.target_reached and status.velocity == 0
+def _standing(drive, tpdos: int) -> Callable:
+    """Return whether a status shows ``drive`` standing, halted after its ``tpdos``-th TPDO.
+
+    Bit 10 says a halted axis stands in the profile modes; a statusword sent just before the
+    halt may still carry its "target velocity reached", hence the velocity as well. In the
+    cyclic modes the bit is the vendor's, and many drives never set it there: a velocity of
+    0 from a TPDO taken since then does (one from before may be from before the motion).
+    """
+    def standing(status) -> bool:
+        if status.velocity != 0:
+            return False
+        if status.target_reached:
+            return True
+        taken = drive.from_tpdo.get(cia402.VELOCITY_ACTUAL)
+        return status.mode in cia402.CYCLIC_MODES and (taken is None or taken[0] > tpdos)
+    return standing
 
 
 def _stopped(status) -> bool:

@@ -86,8 +86,12 @@ class DurandDrive(DurandDevice):
     ``modes``: the modes of operation it has (0x6502), among ``cia402_states.ALL_MODES``;
     ``tick``: seconds between two steps of motion. Other arguments are those of
     :class:`DurandDevice`. :attr:`state` stays the NMT state, as on every simulated device;
-    :attr:`drive_state` is the CiA 402 state's name.
+    :attr:`drive_state` is the CiA 402 state's name. :attr:`cyclic_target_reached` False
+    makes it a drive that never sets statusword bit 10 in the cyclic modes, where CiA 402
+    leaves that bit to the vendor.
     """
+
+    cyclic_target_reached = True
 
     def __init__(self, node_id: int, modes=cia402.ALL_MODES, tick: float = 0.01,
                  **device_options):
@@ -415,6 +419,8 @@ class DurandDrive(DurandDevice):
         if self._halted:
             word |= cia402.HALT_ACTIVE
             reached = self._velocity == 0.0
+        if self._read(MODE) in cia402.CYCLIC_MODES and not self.cyclic_target_reached:
+            reached = False
         return word | mode_bits | (cia402.TARGET_REACHED if reached else 0)
 
     def _mode_status(self):
