@@ -244,7 +244,7 @@ class DriveService:
         Nothing when the drive was read again since ``reads`` (``checks.lost_problem``), or
         with ``enabled`` when it is no longer enabled by us: a step of a move or a halt would
         enable one that stopped itself. ``halt``: set the halt bit (naming who, as
-        ``set_halted``) or release it ('') with them, shown only once it is sent. A release
+        ``set_halted``) or release it ('') with them, shown only past those checks. A release
         restarts the command timeout in the same step, so no timeout halt comes between (it
         would stay shown, and stop later ones). ``by_sdo``: whatever the PDOs map.
         """
@@ -264,9 +264,8 @@ class DriveService:
                     values = {**values, cia402.CONTROLWORD: word}
                 if cia402.CONTROLWORD in values:
                     drive.controlword = values[cia402.CONTROLWORD]
-            if by_sdo:
-                return drive.objects.write_by_sdo(values, timeout)
-            return drive.objects.write(values, timeout)
+            write = drive.objects.write_by_sdo if by_sdo else drive.objects.write
+            return write(values, timeout)
 
     def when_updated(self, drive: DriveRecord, wake: Callable[[], None]) -> None:
         """Call ``wake()`` on the drives' loop at the next feedback or loss of ``drive``."""
@@ -414,7 +413,9 @@ class DriveService:
             self._apply(drive, {cia402.ERROR_CODE: error_code}, time.monotonic())
 
     def _wake(self, drive: DriveRecord) -> None:
-        with self._lock:
+        with self._lock:  # for every TPDO: mostly nobody waits
+            if not drive.waiters:
+                return
             waiters, drive.waiters = drive.waiters, []
         for wake in waiters:
             self._runner.call_soon(wake)
