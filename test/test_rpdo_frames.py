@@ -143,3 +143,22 @@ def test_a_write_after_a_boot_that_moved_the_rpdo_goes_out_on_its_new_cob_id():
     assert after.result(WAIT).success
     assert network.frames == [(moved, bytes(2) + (9).to_bytes(4, 'little'))], \
         'the frame went out on the COB-ID the RPDO had before the boot'
+
+
+def test_a_frame_built_on_the_layout_before_a_boot_is_not_sent_on_the_new_one():
+    # Written after the boot but before the mapping was read again: merged on the old layout.
+    # Once a defect: the re-read found the same size and kept the frame, and the SYNC sent it
+    # on the new mapping, which took its controlword as part of a target.
+    service, network, sync = service_with_a_synchronous_rpdo()
+    boot(service)
+    written = service.write(NODE, 1, [EntryValue(CONTROLWORD, 0, RUN), EntryValue(TARGET, 0, 9)])
+    moved = COB_ID + 0x100
+    reordered = {1: parse_mapping(NODE, 'rpdo', 1, moved, 1, 0,
+                                  [TARGET << 16 | 0x20, CONTROLWORD << 16 | 0x10])}
+    service._parameters.read = lambda node_id, dictionary: ({}, reordered)
+    device = service._devices[NODE]
+    service._read_device(device, device.wanted, False)
+    sync.sync()
+    result = written.result(WAIT)
+    assert not result.success and 'mapping changed' in result.message, result.message
+    assert network.frames == [], 'a frame of the old layout went out on the new mapping'

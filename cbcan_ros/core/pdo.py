@@ -405,9 +405,11 @@ class PdoService:
             if self._closing:
                 return
             old = [mapping.cob_id for mapping in device.tpdos.values()]
-            device.tpdos, device.rpdos = tpdos, rpdos
+            # A frame built on another layout would put its values into the wrong entries.
             device.last_sent = {number: data for number, data in device.last_sent.items()
-                                if number in rpdos and len(data) == rpdos[number].size}
+                                if number in rpdos and number in device.rpdos
+                                and rpdos[number].entries == device.rpdos[number].entries}
+            device.tpdos, device.rpdos = tpdos, rpdos
             device.last_received.clear()
             device.done = request
             device.mapping_text = (f'read: {len(tpdos)} TPDOs, {len(rpdos)} RPDOs at '
