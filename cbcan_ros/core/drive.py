@@ -392,14 +392,14 @@ class DriveService:
             told = drive.ready == drive.read_wanted  # else told once the re-read is done
             new = updated(old, values, stamp, drive.emcy_code)
             drive.status = new
-            if cia402.STATUSWORD in values:
-                drive.updates += 1
+            drive.count(values)
             changed = old.told != new.told
             if changed and told:
                 self._tell(drive)
         if new.faulted and not old.faulted:
             self._runner.submit(self._read_error(drive))
-        self._wake(drive)  # a halt in a cyclic mode waits for a velocity, not a statusword
+        if changed or cia402.STATUSWORD in values or cia402.VELOCITY_ACTUAL in values:
+            self._wake(drive)  # a halt waits for a velocity (drive_standstill)
 
     def on_emcy(self, node_id: int, error_code: int) -> None:
         """Take the error code of an EMCY a drive sent (0: its errors are gone)."""
@@ -413,7 +413,7 @@ class DriveService:
             self._apply(drive, {cia402.ERROR_CODE: error_code}, time.monotonic())
 
     def _wake(self, drive: DriveRecord) -> None:
-        with self._lock:  # for every TPDO: mostly nobody waits
+        with self._lock:  # for most TPDOs: mostly nobody waits
             if not drive.waiters:
                 return
             waiters, drive.waiters = drive.waiters, []

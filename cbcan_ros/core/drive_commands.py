@@ -15,6 +15,7 @@ from typing import Callable, Dict, Optional
 
 from . import cia402
 from .drive_checks import ENABLED_COMMANDS, lost_problem, SHUTTING_DOWN, state_problem
+from .drive_standstill import wait_for_standstill
 from .drive_status import DriveResult
 
 # The timeout of each SDO a sequence sends (a PDO goes out without an answer).
@@ -262,12 +263,10 @@ class DriveCommands:
         self._service.set_enabled(drive, False)
         if (drive.controlword & cia402.HALT
                 and self._service.status(drive.node_id).state == cia402.OPERATION_ENABLED):
-            # Held where it stands, not where it slows. Bit 10 says a halted drive stands in
-            # the profile modes only (the cyclic ones leave it to the vendor), and a velocity
-            # read may never be exactly 0: waited for, then the axis is held where it is.
+            # Held where it stands, not where it slows. A velocity read may never be exactly
+            # 0: waited for, then the axis is held where it is.
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._until(
-                    drive, lambda s: s.target_reached or s.velocity == 0), STANDSTILL_WAIT)
+                await asyncio.wait_for(self._standstill(drive), STANDSTILL_WAIT)
         held = await self._change_mode(drive, mode or self._service.status(drive.node_id).mode)
         self._service.set_halted(drive, '')
         status = await self._reach(drive, cia402.OPERATION_ENABLED,
@@ -326,9 +325,8 @@ class DriveCommands:
                 f'(the drive confirmed the write; no statusword shows its state)')
 
     async def _halt(self, drive, _mode: int) -> str:
-        tpdos = drive.tpdos
-        mark = await self._send(drive, {}, halt='command')
-        await self._after(drive, mark, _standing(drive, tpdos))
+        await self._send(drive, {}, halt='command')
+        await self._standstill(drive)
         await self._read_position(drive)
         position = self._service.status(drive.node_id).position
         return f'node {drive.node_id} halted at position {position} (drive units)'
@@ -392,6 +390,9 @@ class DriveCommands:
                 position = self._service.status(drive.node_id).position
                 return f'node {drive.node_id} reached position {position} (drive units)'
 
+    async def _standstill(self, drive) -> None:
+        await wait_for_standstill(self._service, drive, self._until, SEND_TIMEOUT)
+
     async def _read_position(self, drive) -> None:
         await asyncio.wrap_future(self._service.read_feedback(drive, [cia402.POSITION_ACTUAL],
                                                               SEND_TIMEOUT))
@@ -433,11 +434,9 @@ class DriveCommands:
 
     async def _halt_after_cancel(self, drive, reason: str) -> str:
         """Halt the drive of a cancelled move; return the answer with where it stopped."""
-        tpdos = drive.tpdos
         try:
-            mark = await self._send(drive, {}, halt='cancel')
-            await asyncio.wait_for(self._after(drive, mark, _standing(drive, tpdos)),
-                                   HALT_WAIT)
+            await self._send(drive, {}, halt='cancel')
+            await asyncio.wait_for(self._standstill(drive), HALT_WAIT)
         except (DriveFailed, TimeoutError) as error:
             return f'{reason}; the halt was not confirmed: {error or "no standstill"}'
         await self._read_position(drive)
@@ -459,24 +458,6 @@ def _check_same_drive(drive, status) -> None:
     problem = lost_problem(drive, reads, status)
     if problem:
         raise DriveFailed(problem)
-
-
-def _standing(drive, tpdos: int) -> Callable:
-    """Return whether a status shows ``drive`` standing, halted after its ``tpdos``-th TPDO.
-
-    Bit 10 says a halted axis stands in the profile modes; a statusword sent just before the
-    halt may still carry its "target velocity reached", hence the velocity as well. In the
-    cyclic modes the bit is the vendor's, and many drives never set it there: a velocity of
-    0 from a TPDO taken since then does (one from before may be from before the motion).
-    """
-    def standing(status) -> bool:
-        if status.velocity != 0:
-            return False
-        if status.target_reached:
-            return True
-        taken = drive.from_tpdo.get(cia402.VELOCITY_ACTUAL)
-        return status.mode in cia402.CYCLIC_MODES and (taken is None or taken[0] > tpdos)
-    return standing
 
 
 def _stopped(status) -> bool:
