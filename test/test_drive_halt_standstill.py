@@ -31,6 +31,7 @@ UNUSED = tuple(PdoConfig(kind, number, (), enabled=False)
 RPDOS = (PdoConfig('rpdo', 1, COMMAND, EVENT_DRIVEN),
          PdoConfig('rpdo', 2, SET_POINTS, EVENT_DRIVEN))
 PRE_OPERATIONAL = 128
+HEARTBEAT_PERIOD = 0x1017
 
 
 def running(axis, bit_10: bool = False, deceleration: int = 0):
@@ -103,4 +104,15 @@ def test_a_halt_of_a_drive_whose_tpdos_stopped_is_answered_on_its_sdo_polls(rig)
     wait_until(lambda: drives.status(NODE).velocity == 1000, WAIT, 'a TPDO with 1000 taken')
     assert axis.gateway.call('nmt_command', node_id=NODE, command=PRE_OPERATIONAL).success
     axis.gateway.wait_for_states({NODE: 'PRE_OPERATIONAL'})
+    assert_halted_standing(axis, timeout=5.0)
+
+
+def test_a_halt_just_after_the_drive_was_sent_to_pre_operational_goes_by_sdo(rig):  # noqa: F811
+    # A pre-operational drive takes no RPDO. Once a defect: until its next heartbeat said so,
+    # the halt went by RPDO, was dropped, and was answered while the axis ran on.
+    axis = rig()
+    axis.drive.set_value(HEARTBEAT_PERIOD, 0, struct.pack('<H', 2000))  # the next one late
+    running(axis, deceleration=2000)
+    assert axis.gateway.call('nmt_command', node_id=NODE, command=PRE_OPERATIONAL).success
+    wait_until(lambda: axis.drive.state == 127, WAIT, 'the drive pre-operational')
     assert_halted_standing(axis, timeout=5.0)

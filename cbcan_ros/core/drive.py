@@ -47,7 +47,7 @@ from .drive_status import (
     shown,
     updated,
 )
-from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED, OPERATIONAL
+from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED
 from .pdo_mapping import ReceivedPdo
 from .request_queue import answer, resolved
 from .sdo import SdoResult
@@ -81,7 +81,7 @@ class DriveService:
         self._drives = {
             node_id: DriveRecord(node_id, DriveObjects(
                 node_id, pdo, sdo_batch, sync_producing,
-                lambda n=node_id: monitor.status(n).state == OPERATIONAL), DriveStatus(node_id))
+                lambda n=node_id: monitor.operational(n)), DriveStatus(node_id))
             for node_id in sorted(set(settings.node_ids))}
         self._listeners: List[Callable[[DriveStatus], None]] = []
         self._runner = CoroutineRunner('drives')

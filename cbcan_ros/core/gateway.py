@@ -326,6 +326,7 @@ class Gateway:
         refusal = self.config.write_protection.refuses_nmt()
         if refusal:
             return NmtResult(False, refusal, abort_codes.LOCAL_CONTROL)
+        self.monitor.commanded(node_id)  # before it goes: the node may take it at once
         try:
             self.network.send_message(0, bytes([command, node_id]))
         except BusDown as error:

@@ -78,12 +78,13 @@ class NodeStatus:
 
 
 class _Entry:
-    __slots__ = ('state', 'detected', 'last_monotonic', 'last_wall')
+    __slots__ = ('state', 'detected', 'last_monotonic', 'last_wall', 'commanded_at')
 
     def __init__(self):
         self.state = NOT_DETECTED
         self.detected = False
         self.last_monotonic: Optional[float] = None
+        self.commanded_at = float('-inf')  # when the gateway last sent it an NMT command
         # Its time on the wall clock, worked out when first asked (not for every frame),
         # then kept: one heartbeat has one time, however often it is asked for.
         self.last_wall: Optional[float] = None
@@ -139,6 +140,25 @@ class HeartbeatMonitor:
         """Return what is known of ``node_id`` (NOT_DETECTED if never seen)."""
         with self._changed:
             return self._status(node_id, self._nodes.get(node_id) or _Entry(), time.monotonic())
+
+    def commanded(self, node_id: int) -> None:
+        """Note that the gateway sent ``node_id`` (0 = every node) an NMT command just now."""
+        with self._changed:
+            now = time.monotonic()
+            for entry_id, entry in self._nodes.items():
+                if node_id in (0, entry_id):
+                    entry.commanded_at = now
+
+    def operational(self, node_id: int) -> bool:
+        """Return whether ``node_id`` said OPERATIONAL since the gateway last commanded it.
+
+        Its PDOs are usable then. A node just sent to PRE_OPERATIONAL takes no PDO from that
+        moment, though its next heartbeat saying so may be a second away.
+        """
+        with self._changed:
+            entry = self._nodes.get(node_id)
+            return (entry is not None and entry.detected and entry.state == OPERATIONAL
+                    and entry.last_monotonic > entry.commanded_at)
 
     def statuses(self) -> List[NodeStatus]:
         """Return every known node (expected or seen), sorted by node id."""
