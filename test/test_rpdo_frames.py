@@ -162,3 +162,21 @@ def test_a_frame_built_on_the_layout_before_a_boot_is_not_sent_on_the_new_one():
     result = written.result(WAIT)
     assert not result.success and 'mapping changed' in result.message, result.message
     assert network.frames == [], 'a frame of the old layout went out on the new mapping'
+
+
+def test_a_write_waiting_on_a_layout_read_again_is_answered_not_sent():
+    # Once a defect: the re-read dropped its frame, a write on the new layout built another,
+    # and the SYNC answered both "sent" though the first one's values never went out.
+    service, network, sync = service_with_a_synchronous_rpdo()
+    before = service.write(NODE, 1, [EntryValue(CONTROLWORD, 0, RUN), EntryValue(TARGET, 0, 5)])
+    reordered = {1: parse_mapping(NODE, 'rpdo', 1, COB_ID, 1, 0,
+                                  [TARGET << 16 | 0x20, CONTROLWORD << 16 | 0x10])}
+    service._parameters.read = lambda node_id, dictionary: ({}, reordered)
+    device = service._devices[NODE]
+    service._read_device(device, device.wanted, False)
+    after = service.write(NODE, 1, [EntryValue(TARGET, 0, 9)])
+    sync.sync()
+    result = before.result(WAIT)
+    assert not result.success and 'not sent' in result.message, result.message
+    assert after.result(WAIT).success
+    assert network.frames == [(COB_ID, (9).to_bytes(4, 'little') + bytes(2))]

@@ -103,8 +103,9 @@ class PdoService:
         self._subscribed: set = set()
         self._listeners: List[Callable[[ReceivedPdo], None]] = []
         self._closing = False
-        # The writes waiting for a SYNC, each with the boot-ups of its device before it.
-        self._pending_sync: Dict[Tuple[int, int], List[Tuple[Future, int]]] = {}
+        # (node, RPDO): the writes waiting for the SYNC, each with its device's boot count
+        # and the mapping it was written on
+        self._pending_sync: Dict[Tuple[int, int], List[Tuple[Future, int, PdoMapping]]] = {}
         self._thread = threading.Thread(target=self._read_mappings, name='pdo-mappings',
                                         daemon=True)
 
@@ -133,7 +134,7 @@ class PdoService:
             self._by_cob.clear()
             self._follow_cob_ids()
         for futures in pending.values():
-            for future, _life in futures:
+            for future, *_ in futures:
                 answer(future, SdoResult.failed(f'{SHUTTING_DOWN}; it was not sent'))
         for node_id in self._devices:
             self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
@@ -204,7 +205,7 @@ class PdoService:
                     return resolved(self._refused(node_id, frame))
                 first = key not in self._pending_sync
                 self._pending_sync.setdefault(key, []).append(
-                    (future, self._devices[node_id].life))
+                    (future, self._devices[node_id].life, mapping))
             if first and not self._sync.after_next_sync(lambda: self._flush(key)):
                 self._flush(key)  # SYNC is paused (bus down): fails at once
             return future
@@ -277,6 +278,9 @@ class PdoService:
         nothing.
         """
         device = self._devices[mapping.node_id]
+        if device.rpdos.get(mapping.number) != mapping:  # read again since it was checked
+            return SdoResult.failed(f'{mapping.name}: its PDO mapping changed while the write '
+                                    f'was checked; nothing was sent')
         previous = device.last_sent.get(mapping.number) or bytes(mapping.size)
         try:
             frame = bytes(data) if data else encode(mapping, previous, values)
@@ -335,9 +339,12 @@ class PdoService:
                 frame = device.last_sent.get(number)
                 # The mapping as it is now: a boot may have moved the RPDO since the first write.
                 mapping = device.rpdos.get(number)
-                # Written before a boot: gone with the RPDO's old life, whatever came since.
-                lost = [future for future, life in futures if life != device.life]
-                current = [future for future, life in futures if life == device.life]
+                # Written before a boot, or on a layout read again since: gone with it,
+                # whatever came since.
+                lost = [future for future, life, layout in futures
+                        if life != device.life or layout != mapping]
+                current = [future for future, life, layout in futures
+                           if life == device.life and layout == mapping]
                 if frame is None or mapping is None:  # its mapping changed: nothing is left
                     lost, current = lost + current, []
             result = self._send(mapping, frame) if current else None
