@@ -169,8 +169,7 @@ class Gateway:
         self.drives = DriveService(self.network, config.drives, self.monitor, self.pdo,
                                    lambda accesses, timeout: self._batch(accesses, timeout,
                                                                          True),
-                                   lambda: self.sync.producing,
-                                   config.write_protection, self._bus_down,
+                                   self.sync, config.write_protection, self._bus_down,
                                    self.heartbeat.beat_now)
         self.emcy.add_listener(lambda emergency: self.drives.on_emcy(
             emergency.node_id, emergency.error_code))
@@ -326,11 +325,12 @@ class Gateway:
         refusal = self.config.write_protection.refuses_nmt()
         if refusal:
             return NmtResult(False, refusal, abort_codes.LOCAL_CONTROL)
-        self.monitor.commanded(node_id)  # before it goes: the node may take it at once
         try:
             self.network.send_message(0, bytes([command, node_id]))
         except BusDown as error:
             return NmtResult(False, f'the NMT command was not sent: {error}')
+        finally:  # sent or not: a heartbeat from before it tells nothing of after it
+            self.monitor.commanded(node_id, command)
         return NmtResult(True)
 
     def _lss_refusal(self) -> Optional[str]:

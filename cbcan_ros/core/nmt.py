@@ -7,6 +7,7 @@ monitor subscribes to every heartbeat COB-ID itself and runs its own timeout wat
 """
 
 from dataclasses import dataclass
+import math
 import threading
 import time
 from typing import Callable, Dict, Iterable, List, Optional
@@ -78,13 +79,12 @@ class NodeStatus:
 
 
 class _Entry:
-    __slots__ = ('state', 'detected', 'last_monotonic', 'last_wall', 'commanded_at')
+    __slots__ = ('state', 'detected', 'last_monotonic', 'last_wall')
 
     def __init__(self):
         self.state = NOT_DETECTED
         self.detected = False
         self.last_monotonic: Optional[float] = None
-        self.commanded_at = float('-inf')  # when the gateway last sent it an NMT command
         # Its time on the wall clock, worked out when first asked (not for every frame),
         # then kept: one heartbeat has one time, however often it is asked for.
         self.last_wall: Optional[float] = None
@@ -107,6 +107,7 @@ class HeartbeatMonitor:
         self._nodes: Dict[int, _Entry] = {node_id: _Entry() for node_id in expected_nodes}
         self._listeners: List[Callable[[], None]] = []
         self._lost_at = float('-inf')  # when the bus last went down (time.monotonic())
+        self._commanded: Dict[int, float] = {}  # node id (0 = all): when told to leave OP
         # Heartbeats take the plain lock (cheaper than entering the Condition, and every
         # frame pays for it); the watcher waits on the Condition built on it.
         self._lock = threading.Lock()
@@ -141,24 +142,27 @@ class HeartbeatMonitor:
         with self._changed:
             return self._status(node_id, self._nodes.get(node_id) or _Entry(), time.monotonic())
 
-    def commanded(self, node_id: int) -> None:
-        """Note that the gateway sent ``node_id`` (0 = every node) an NMT command just now."""
+    def commanded(self, node_id: int, command: int) -> None:
+        """Note that the gateway just sent ``node_id`` (0 = every node) NMT ``command``.
+
+        A command that leaves OPERATIONAL (stop, pre-operational, a reset) takes the node
+        off its PDOs at once, though its next heartbeat saying so may be a second away.
+        """
+        if command == START:
+            return  # PDOs flow once the node says OPERATIONAL, as ever
         with self._changed:
-            now = time.monotonic()
-            for entry_id, entry in self._nodes.items():
-                if node_id in (0, entry_id):
-                    entry.commanded_at = now
+            self._commanded[node_id] = time.monotonic()
 
     def operational(self, node_id: int) -> bool:
-        """Return whether ``node_id`` said OPERATIONAL since the gateway last commanded it.
+        """Return whether ``node_id`` said OPERATIONAL since a command that left that state.
 
-        Its PDOs are usable then. A node just sent to PRE_OPERATIONAL takes no PDO from that
-        moment, though its next heartbeat saying so may be a second away.
+        Its PDOs are usable then (see ``commanded``).
         """
         with self._changed:
             entry = self._nodes.get(node_id)
+            left = max(self._commanded.get(node_id, -math.inf), self._commanded.get(0, -math.inf))
             return (entry is not None and entry.detected and entry.state == OPERATIONAL
-                    and entry.last_monotonic > entry.commanded_at)
+                    and entry.last_monotonic > left)
 
     def statuses(self) -> List[NodeStatus]:
         """Return every known node (expected or seen), sorted by node id."""
