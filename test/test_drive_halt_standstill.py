@@ -7,15 +7,17 @@ axis must not be left waiting for a frame that never comes.
 """
 
 import struct
+import time
 
 import pytest
 from std_msgs.msg import Float64
-from test_drives import CSV, NODE, rig, WAIT  # noqa: F401 - rig is a fixture used by name
+from test_drives import CSV, NODE, rig, WAIT, watch  # noqa: F401 - rig: a fixture used by name
 
 from cbcan_ros.core import drive_cycle
 from cbcan_ros.simulation.durand_drive_objects import POSITION_ACTUAL, PROFILE_ACCELERATION
 from cbcan_ros.simulation.durand_drive_pdos import (
     COMMAND,
+    default_drive_pdos,
     EVENT_DRIVEN,
     MOTION,
     SET_POINTS,
@@ -116,3 +118,53 @@ def test_a_halt_just_after_the_drive_was_sent_to_pre_operational_goes_by_sdo(rig
     assert axis.gateway.call('nmt_command', node_id=NODE, command=PRE_OPERATIONAL).success
     wait_until(lambda: axis.drive.state == 127, WAIT, 'the drive pre-operational')
     assert_halted_standing(axis, timeout=5.0)
+
+
+def test_a_halt_in_a_synchronous_rpdo_is_answered_once_the_axis_stands(rig):  # noqa: F811
+    # The target went out after one SYNC and starts the axis at the next; the halt, decided
+    # just after, is applied only at the SYNC after that: nothing may move after the answer.
+    # (The read after the halt waits for that SYNC: on a drive whose velocity lags its
+    # target, a read before it could show 0. This drive's does not lag, so this test does
+    # not show that wait; it shows the synchronous path end to end.)
+    axis = rig(pdos=default_drive_pdos(1), **{'sync.period': 0.02})
+    drives = axis.gateway.node.gateway.drives
+    wait_until(lambda: 2 in axis.gateway.node.gateway.pdo.mappings(NODE)[1], WAIT,
+               "the drive's RPDO 2 read")
+    axis.drive.cyclic_target_reached = False
+    axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', 20000))
+    axis.enable(CSV)
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        assert drives.target(NODE, 1000).success
+        watch(bus, frames, lambda seen: any(m.arbitration_id == 0x300 + NODE and
+                                            struct.unpack_from('<i', m.data)[0] == 1000
+                                            for m in seen), 'the target in RPDO 2')
+        halted = axis.command('halt', timeout=WAIT)
+        answered = time.time()  # the virtual bus stamps frames with this clock
+        assert halted.success, halted.message
+        watch(bus, frames, lambda seen: sum(m.arbitration_id == 0x280 + NODE
+                                            and m.timestamp > answered for m in seen) >= 5,
+              'five SYNCs of TPDOs after the answer')
+    finally:
+        bus.shutdown()
+    velocities = [struct.unpack_from('<i', m.data, 4)[0] for m in frames
+                  if m.arbitration_id == 0x280 + NODE and m.timestamp > answered]
+    assert velocities and not any(velocities), \
+        f'"{halted.message}", then the axis moved: {velocities}'
+
+
+def test_an_nmt_start_to_a_running_drive_leaves_its_targets_on_the_rpdos(rig):  # noqa: F811
+    # Only a command that leaves OPERATIONAL takes a drive off its PDOs until it says so
+    # again: a start changes nothing for one already running (targets stay RPDOs, in order).
+    axis = rig()
+    drives = running(axis)
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        assert axis.gateway.call('nmt_command', node_id=0, command=1).success
+        assert drives.target(NODE, 500).success
+        watch(bus, frames, lambda seen: any(m.arbitration_id == 0x300 + NODE and
+                                            struct.unpack_from('<i', m.data)[0] == 500
+                                            for m in seen), 'the target in RPDO 2')
+    finally:
+        bus.shutdown()
+    assert not any(m.arbitration_id == 0x600 + NODE for m in frames), 'a target went by SDO'

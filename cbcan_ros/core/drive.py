@@ -65,22 +65,22 @@ class DriveService:
     """The drives of ``settings.node_ids`` on the gateway's bus.
 
     ``network`` is the gateway's canopen network, ``monitor`` its heartbeat monitor, ``pdo``
-    its PDO service, ``sdo_batch`` its SDO batch call, ``sync_producing()`` whether it
-    produces SYNC, ``write_protection`` its write rules, ``bus_down()`` why the bus is down
-    (None while it is up), ``beat_now()`` sends the gateway's heartbeat at once.
+    its PDO service, ``sdo_batch`` its SDO batch call, ``sync`` its SYNC producer,
+    ``write_protection`` its write rules, ``bus_down()`` why the bus is down (None while it
+    is up), ``beat_now()`` sends the gateway's heartbeat at once.
     """
 
     def __init__(self, network, settings: DriveSettings, monitor, pdo, sdo_batch,
-                 sync_producing: Callable[[], bool], write_protection,
+                 sync, write_protection,
                  bus_down: Callable[[], Optional[str]] = lambda: None,
                  beat_now: Callable[[], None] = lambda: None):
-        self.settings, self._network, self._monitor = settings, network, monitor
+        self.settings, self._network, self._monitor, self.sync = settings, network, monitor, sync
         self._sdo_batch, self._beat_now = sdo_batch, beat_now
         self._bus_down = bus_down
         self._lock = threading.RLock()
         self._drives = {
             node_id: DriveRecord(node_id, DriveObjects(
-                node_id, pdo, sdo_batch, sync_producing,
+                node_id, pdo, sdo_batch, lambda: sync.producing,
                 lambda n=node_id: monitor.operational(n)), DriveStatus(node_id))
             for node_id in sorted(set(settings.node_ids))}
         self._listeners: List[Callable[[DriveStatus], None]] = []

@@ -10,8 +10,10 @@ object the gateway has no commanded value for yet is not used (SDO instead).
 A synchronous RPDO is used only while the gateway produces SYNC: the PDO service then sends
 it right after a SYNC, and the drive applies it at the next one. Without SYNC it would never
 be applied, so its objects go by SDO. PDOs of either kind are used only while the drive is
-OPERATIONAL (CiA 301: a pre-operational device neither sends nor takes PDOs); the gateway
-never changes a drive's NMT state by itself, so a drive left pre-operational is run by SDO.
+OPERATIONAL (CiA 301: a pre-operational device neither sends nor takes PDOs), and not from
+an NMT command of the gateway's that left that state until the drive says OPERATIONAL again;
+the gateway never changes a drive's NMT state by itself, so a drive left pre-operational is
+run by SDO.
 """
 
 from concurrent.futures import Future
@@ -78,7 +80,7 @@ class DriveObjects:
 
     ``sdo_batch`` is the gateway's (its SDO channels and write protection), ``pdo`` its PDO
     service, ``sync_producing()`` whether the gateway produces SYNC now, ``operational()``
-    whether the drive is OPERATIONAL.
+    whether the drive's PDOs are usable (``HeartbeatMonitor.operational``).
     """
 
     def __init__(self, node_id: int, pdo: PdoService, sdo_batch, sync_producing,
