@@ -14,6 +14,7 @@ from std_msgs.msg import Float64
 from test_drives import CSV, NODE, rig, WAIT, watch  # noqa: F401 - rig: a fixture used by name
 
 from cbcan_ros.core import drive_cycle
+from cbcan_ros.core.drive_standstill import shows_standing
 from cbcan_ros.simulation.durand_drive_objects import POSITION_ACTUAL, PROFILE_ACCELERATION
 from cbcan_ros.simulation.durand_drive_pdos import (
     COMMAND,
@@ -158,13 +159,39 @@ def test_an_nmt_start_to_a_running_drive_leaves_its_targets_on_the_rpdos(rig):  
     # again: a start changes nothing for one already running (targets stay RPDOs, in order).
     axis = rig()
     drives = running(axis)
+    monitor = axis.gateway.node.gateway.monitor
+    wait_until(lambda: monitor.operational(NODE), WAIT, 'the drive heard OPERATIONAL')
     bus, frames = axis.gateway.raw_bus(), []
     try:
         assert axis.gateway.call('nmt_command', node_id=0, command=1).success
         assert drives.target(NODE, 500).success
-        watch(bus, frames, lambda seen: any(m.arbitration_id == 0x300 + NODE and
-                                            struct.unpack_from('<i', m.data)[0] == 500
-                                            for m in seen), 'the target in RPDO 2')
+        carried = watch(bus, frames, lambda seen: next(
+            (m for m in seen if carries_500(m)), None), 'the target on the bus')
     finally:
         bus.shutdown()
-    assert not any(m.arbitration_id == 0x600 + NODE for m in frames), 'a target went by SDO'
+    assert carried.arbitration_id == 0x300 + NODE, f'the target went in {carried}'
+
+
+def carries_500(message) -> bool:
+    """Return whether ``message`` is RPDO 2 or an SDO download with a target velocity of 500."""
+    if message.arbitration_id == 0x300 + NODE:
+        return struct.unpack_from('<i', message.data)[0] == 500
+    return (message.arbitration_id == 0x600 + NODE and message.data[1:3] == b'\xff\x60'
+            and struct.unpack_from('<i', message.data, 4)[0] == 500)
+
+
+@pytest.mark.parametrize('mode, statusword, velocity, standing', [
+    (1, 0x1637, 5, True),     # PP: bit 10 is the drive's own standstill, jitter or not
+    (1, 0x1237, 0, False),    # PP: no bit 10, still moving
+    (3, 0x0737, 0, False),    # PV: bit 10 alone was also set before the halt, at speed
+    (3, 0x1737, 3, True),     # PV: bits 10 and 12, speed is 0
+    (6, 0x0637, None, True),  # homing: bit 10
+    (4, 0x1737, 1, False),    # PT: only a velocity of 0
+    (9, 0x0637, 7, False),    # CSV: bit 10 is the vendor's, the velocity decides
+    (9, 0x0237, 0, True),
+    (8, 0x1637, None, False),  # CSP without a velocity read: not seen to stand
+], ids=['pp', 'pp_moving', 'pv_bit_10_only', 'pv', 'homing', 'pt', 'csv_moving', 'csv',
+        'csp_unknown'])
+def test_standstill_is_read_from_signs_that_cannot_be_left_over_from_before_the_halt(
+        mode, statusword, velocity, standing):
+    assert shows_standing(statusword, velocity, mode) == standing

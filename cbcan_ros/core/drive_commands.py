@@ -266,7 +266,7 @@ class DriveCommands:
             # Held where it stands, not where it slows. A velocity read may never be exactly
             # 0: waited for, then the axis is held where it is.
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._standstill(drive), STANDSTILL_WAIT)
+                await asyncio.wait_for(self._standstill(drive, False), STANDSTILL_WAIT)
         held = await self._change_mode(drive, mode or self._service.status(drive.node_id).mode)
         self._service.set_halted(drive, '')
         status = await self._reach(drive, cia402.OPERATION_ENABLED,
@@ -390,8 +390,8 @@ class DriveCommands:
                 position = self._service.status(drive.node_id).position
                 return f'node {drive.node_id} reached position {position} (drive units)'
 
-    async def _standstill(self, drive) -> None:
-        await wait_for_standstill(self._service, drive, self._until, SEND_TIMEOUT)
+    async def _standstill(self, drive, just_halted: bool = True) -> None:
+        await wait_for_standstill(self._service, drive, self._until, SEND_TIMEOUT, just_halted)
 
     async def _read_position(self, drive) -> None:
         await asyncio.wrap_future(self._service.read_feedback(drive, [cia402.POSITION_ACTUAL],

@@ -178,6 +178,14 @@ class DriveObjects:
             SdoResult.ok())))
         return done
 
+    def applied_at_sync(self, index: int) -> bool:
+        """Return whether a write of ``index`` goes now in a synchronous RPDO."""
+        with self._lock:
+            commanded = dict(self.commanded)
+        chosen = self._rpdos_for({index: commanded.get(index, 0)}, commanded)
+        _, rpdos = self._pdo.mappings(self.node_id)
+        return any(number in rpdos and rpdos[number].synchronous for number in chosen)
+
     def _rpdos_for(self, values: Dict[int, int],
                    commanded: Dict[int, int]) -> Dict[int, List[int]]:
         """Return the usable RPDOs that carry some of ``values``: number -> objects mapped."""

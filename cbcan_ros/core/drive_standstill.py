@@ -3,15 +3,21 @@
 Feedback the gateway takes just after it sent a halt may have left the drive before the halt
 reached it: frames in flight, or still in the gateway's own queue. Such a statusword can say
 "target velocity reached" of an axis running at its target, next to a velocity from before
-the motion began. So the wait reads the statusword and the velocity by SDO first: the drive
-answers after it took the frames sent to it before the request (while the gateway produces
-SYNC, the read waits for the next SYNC, which applies a halt sent in a synchronous RPDO).
-What that read shows, and what the drive sends after it, is from after the halt.
+the motion began. So the wait reads the statusword and the velocity by SDO first, and then
+takes only the statuswords and velocities that come after that answer. A halt sent in a
+synchronous RPDO is applied at the SYNC after the one its frame followed: the read waits for
+two SYNCs then (one more than needed, for a frame that went out late).
 
-In the profile modes the statusword says it: with the halt bit set, bit 10 means the axis
-stands (at the drive's own velocity window). In the cyclic modes (CSP, CSV, CST) CiA 402
-leaves bit 10 to the vendor and many drives never set it there: a velocity of exactly 0
-does (CiA 402 gives every drive with a velocity or torque loop the object, 0x606C).
+A drive may still answer that read from its last control cycle, before the halt took effect,
+so no sign that can be left over from before the halt counts:
+
+- profile position and homing: bit 10 (with the halt bit set, the drive's own "standing",
+  at its velocity window; a moving axis showed 0 there before the halt);
+- profile velocity: bit 10 and bit 12 ("speed is 0": an axis at its target velocity showed
+  bit 10 before the halt too);
+- profile torque and the cyclic modes (CSP, CSV, CST), where CiA 402 leaves bit 10 to the
+  vendor and many drives never set it there: a velocity (0x606C) of exactly 0. A drive
+  without that object, or whose velocity jitters at standstill, is not seen to stand.
 
 A standstill the frames do not show within ``REREAD`` (its last frame may have come between
 the answer and the wait, and a drive that sends its values only on change sends no more) is
@@ -26,26 +32,30 @@ from . import cia402
 
 STANDSTILL_READS = [cia402.STATUSWORD, cia402.VELOCITY_ACTUAL]
 REREAD = 0.5  # s
+BY_STATUSWORD = {cia402.PROFILE_POSITION: cia402.TARGET_REACHED,
+                 cia402.HOMING: cia402.TARGET_REACHED,
+                 cia402.PROFILE_VELOCITY: cia402.TARGET_REACHED | cia402.MODE_BIT_12}
 
 
-def read_shows_standing(read: Dict[int, int], mode: int) -> bool:
-    """Return whether a statusword and velocity read after a halt show the axis standing."""
-    if mode in cia402.CYCLIC_MODES:
-        return read.get(cia402.VELOCITY_ACTUAL) == 0
-    return bool(read.get(cia402.STATUSWORD, 0) & cia402.TARGET_REACHED)
+def shows_standing(statusword: int, velocity, mode: int) -> bool:
+    """Return whether a halted drive's statusword and velocity (None: unknown) show it stand."""
+    bits = BY_STATUSWORD.get(mode)
+    if bits is None:
+        return velocity == 0
+    return statusword & bits == bits
 
 
-async def wait_for_standstill(service, drive, until: Callable, read_timeout: float) -> None:
+async def wait_for_standstill(service, drive, until: Callable, read_timeout: float,
+                              just_halted: bool) -> None:
     """Return once ``drive``, halted, stands; ``until(drive, ok)`` waits for a status.
 
-    ``service`` is the drive service (``read_feedback``, ``status``, ``sync``). ``until``
+    ``service`` is the drive service (``read_feedback``, ``status``, ``sync``); ``until``
     raises when the drive faults, is lost, or leaves the state its command needs.
+    ``just_halted``: the halt was just handed out (and may wait for a SYNC to apply).
     """
-    loop = asyncio.get_running_loop()
-    applied = loop.create_future()
-    if service.sync.after_next_sync(
-            lambda: loop.call_soon_threadsafe(lambda: applied.done() or applied.set_result(0))):
-        await applied
+    if just_halted and drive.objects.applied_at_sync(cia402.CONTROLWORD):
+        for _ in range(2):
+            await _next_sync(service.sync)
     while True:
         read = await asyncio.wrap_future(service.read_feedback(drive, STANDSTILL_READS,
                                                                read_timeout))
@@ -55,12 +65,25 @@ async def wait_for_standstill(service, drive, until: Callable, read_timeout: flo
             return
 
 
+async def _next_sync(sync) -> None:
+    """Return after the next SYNC (at once when none is coming)."""
+    loop = asyncio.get_running_loop()
+    done = loop.create_future()
+
+    def wake() -> None:
+        with contextlib.suppress(RuntimeError):  # the loop closed: shutdown ended the wait
+            loop.call_soon_threadsafe(lambda: done.done() or done.set_result(None))
+    if sync.after_next_sync(wake):
+        await done
+
+
 def _standing_since(drive, read: Dict[int, int], mode: int) -> Callable:
     """Return whether a status shows the axis standing, by ``read`` or what came after it."""
-    if read_shows_standing(read, mode):
+    if cia402.STATUSWORD in read and shows_standing(
+            read[cia402.STATUSWORD], read.get(cia402.VELOCITY_ACTUAL), mode):
         return lambda status: True
     updates, velocities = drive.updates, drive.velocities
-    if mode in cia402.CYCLIC_MODES:
-        return lambda status: drive.velocities > velocities and status.velocity == 0
-    return lambda status: (drive.updates > updates
-                           and bool(status.statusword & cia402.TARGET_REACHED))
+    if mode in BY_STATUSWORD:
+        return lambda status: (drive.updates > updates
+                               and shows_standing(status.statusword, None, mode))
+    return lambda status: drive.velocities > velocities and status.velocity == 0

@@ -339,12 +339,11 @@ class PdoService:
                 frame = device.last_sent.get(number)
                 # The mapping as it is now: a boot may have moved the RPDO since the first write.
                 mapping = device.rpdos.get(number)
-                # Written before a boot, or on a layout read again since: gone with it,
-                # whatever came since.
-                lost = [future for future, life, layout in futures
-                        if life != device.life or layout != mapping]
-                current = [future for future, life, layout in futures
-                           if life == device.life and layout == mapping]
+                # Written before a boot, or on entries read again since (the frame was
+                # dropped with them): gone, whatever came since.
+                current = [future for future, life, layout in futures if life == device.life
+                           and mapping is not None and layout.entries == mapping.entries]
+                lost = [future for future, *_ in futures if future not in current]
                 if frame is None or mapping is None:  # its mapping changed: nothing is left
                     lost, current = lost + current, []
             result = self._send(mapping, frame) if current else None
