@@ -95,8 +95,6 @@ TARGET_OF_MODE = {
     PROFILE_VELOCITY: TARGET_VELOCITY, CYCLIC_VELOCITY: TARGET_VELOCITY,
     PROFILE_TORQUE: TARGET_TORQUE, CYCLIC_TORQUE: TARGET_TORQUE,
 }
-# Modes whose statusword bit 10 is the vendor's to define (a halted drive may never set it).
-CYCLIC_MODES = frozenset({CYCLIC_POSITION, CYCLIC_VELOCITY, CYCLIC_TORQUE})
 # Modes whose target is streamed: the command timeout halts them when it stops coming.
 STREAMING_MODES = frozenset({PROFILE_VELOCITY, CYCLIC_POSITION, CYCLIC_VELOCITY,
                              CYCLIC_TORQUE})
