@@ -344,7 +344,7 @@ class PdoService:
                 current = [future for future, life, layout in futures if life == device.life
                            and mapping is not None and layout.entries == mapping.entries]
                 lost = [future for future, *_ in futures if future not in current]
-                if frame is None or mapping is None:  # its mapping changed: nothing is left
+                if frame is None:  # its mapping changed: nothing is left
                     lost, current = lost + current, []
             result = self._send(mapping, frame) if current else None
         for future in current:
