@@ -9,18 +9,31 @@ machine does now and then, and checks what a robot program sees.
 Once a defect (before the change that added this file): the older answer won. A drive that
 entered OPERATION_ENABLED just as the gateway saw it go OPERATIONAL was shown SWITCHED_ON
 right after ``enable`` answered success, and refused its first target.
+
+A TPDO that comes before the gateway knows the drive's PDO mapping cannot be taken. Sent on
+change only, it is not sent again: the gateway reads by SDO what TPDOs bring from then on.
+Once a defect: the drive stayed shown in the state before, and an enable timed out now and
+then (the mapping read finished while the enable's first step went by SDO).
 """
 
-from test_drive_bus_faults import hold_next_answer
-from test_drives import NODE, rig, WAIT  # noqa: F401 - rig is a fixture used by name
+from concurrent.futures import Future
+from dataclasses import replace
+import threading
 
-from cbcan_ros.core import cia402
+from test_drive_bus_faults import hold_next_answer
+from test_drives import CSV, NODE, PDOS, rig, WAIT  # noqa: F401 - rig is a fixture used by name
+
+from cbcan_ros.core import cia402, drive_cycle
+from cbcan_ros.core.pdo_parameters import PdoParameters
 
 from conftest import wait_until
 
 PRE_OPERATIONAL, OPERATIONAL, RESET = 128, 1, 129  # NMT commands; the drive's states:
 DRIVE_PRE_OPERATIONAL, DRIVE_OPERATIONAL = 127, 5
 ERROR = 0x2310  # continuous over-current
+# The statusword TPDO on change only, with no event timer to repeat it.
+ON_CHANGE = tuple(replace(pdo, event_timer=0) if (pdo.kind, pdo.number) == ('tpdo', 1)
+                  else pdo for pdo in PDOS)
 
 
 def nmt(axis, command: int, drive_state: int) -> None:
@@ -33,6 +46,26 @@ def nmt(axis, command: int, drive_state: int) -> None:
     wait_until(lambda: axis.drive.state == drive_state
                and monitor.status(NODE).state == drive_state, WAIT,
                f'the drive in NMT state {drive_state}, heard so')
+
+
+def hold_mapping_reads(monkeypatch) -> threading.Event:
+    """Make the gateway take the PDO mappings it reads only once the returned event is set.
+
+    Each read goes to the device at once; its result is held.
+    """
+    read, release = PdoParameters.read, threading.Event()
+
+    def held(self, *args, **kwargs):
+        result = read(self, *args, **kwargs)
+        release.wait(WAIT)
+        return result
+    monkeypatch.setattr(PdoParameters, 'read', held)
+    return release
+
+
+def drive_record(axis):
+    """Return the gateway's record of the drive."""
+    return axis.gateway.node.gateway.drives._drives[NODE]
 
 
 def shown_state(axis) -> str:
@@ -71,3 +104,50 @@ def test_a_change_the_drive_sends_while_it_is_being_re_read_is_not_lost(rig):  #
     wait_until(lambda: axis.latest_state() not in (None, 'UNKNOWN'), WAIT, 'the drive re-read')
     assert axis.latest_state() == 'FAULT'
     assert shown_state(axis) == 'FAULT'
+
+
+def test_a_fault_sent_before_the_gateway_knew_the_mapping_is_shown(rig, monkeypatch):  # noqa: F811
+    monkeypatch.setattr(drive_cycle, 'POLL_PERIOD', 60.0)  # no periodic read to find it
+    release = hold_mapping_reads(monkeypatch)
+    try:
+        axis = rig(pdos=ON_CHANGE)
+        wait_until(lambda: drive_record(axis).polled, WAIT, 'the first SDO read of feedback')
+        axis.drive.inject_fault(ERROR)
+        wait_until(lambda: axis.drive.drive_state == 'FAULT', WAIT, 'the drive in FAULT')
+    finally:
+        release.set()
+    wait_until(lambda: axis.latest_state() == 'FAULT', WAIT, 'drive_state FAULT')
+
+
+def test_an_enable_answered_by_a_tpdo_before_the_mapping_was_known_succeeds(
+        rig, monkeypatch):  # noqa: F811
+    monkeypatch.setattr(drive_cycle, 'POLL_PERIOD', 60.0)
+    release = hold_mapping_reads(monkeypatch)
+    try:
+        axis = rig(pdos=ON_CHANGE)
+        objects = drive_record(axis).objects
+        write = objects.write
+
+        def mapping_known_before_the_answer(values, timeout):
+            # The drive took the step and sent its statusword; the gateway then learns the
+            # mapping, and only then hears that the step went out.
+            sent, late = write(values, timeout), Future()
+            if cia402.CONTROLWORD not in values or release.is_set():
+                return sent
+
+            def hand_over(done):
+                release.set()
+                try:
+                    wait_until(lambda: cia402.STATUSWORD in objects.mapped_feedback(), WAIT,
+                               'the mapping taken')
+                finally:
+                    late.set_result(done.result())
+            sent.add_done_callback(lambda done: threading.Thread(
+                target=hand_over, args=(done,), daemon=True).start())
+            return late
+        objects.write = mapping_known_before_the_answer
+        assert axis.drive.drive_state == 'SWITCH_ON_DISABLED'
+        axis.enable(CSV)
+        assert axis.drive.drive_state == 'OPERATION_ENABLED'
+    finally:
+        release.set()

@@ -27,16 +27,24 @@ def poll(drive, lock, read_feedback: Callable[[object, List[int], float], Future
          now: bool = False) -> None:
     """Read by SDO what no TPDO brings of a re-read drive: every ``POLL_PERIOD``, or ``now``.
 
-    ``read_feedback(drive, indexes, timeout)`` reads and takes them (the drive service's);
-    ``lock`` guards the drive record.
+    Feedback that TPDOs bring only since the last read is read once more, at once: a TPDO
+    sent before the gateway knew the mapping, or heard the drive OPERATIONAL, was not taken,
+    and one sent on change only is not sent again. ``read_feedback(drive, indexes, timeout)`` reads
+    and takes them (the drive service's); ``lock`` guards the drive record.
     """
     with lock:
-        if drive.polling or not drive.heard or drive.ready != drive.read_wanted:
+        if not drive.heard or drive.ready != drive.read_wanted:
+            drive.polled_mapped = set()  # once re-read, all it maps counts as new
             return
-        if not now and time.monotonic() - drive.polled < POLL_PERIOD:
+        mapped = drive.objects.mapped_feedback()
+        drive.polled_mapped &= mapped  # unusable for a moment, TPDOs may have been lost
+        if drive.polling:
             return
-        drive.polled = time.monotonic()
-        missing = [index for index in FEEDBACK if index not in drive.objects.mapped_feedback()]
+        fresh = mapped - drive.polled_mapped
+        if not (now or fresh) and time.monotonic() - drive.polled < POLL_PERIOD:
+            return
+        drive.polled, drive.polled_mapped = time.monotonic(), mapped
+        missing = [index for index in FEEDBACK if index not in mapped or index in fresh]
         if not missing:
             return
         drive.polling = True

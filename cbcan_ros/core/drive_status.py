@@ -6,7 +6,7 @@ Shared by the drive service (``drive``), its sequences (``drive_commands``) and 
 
 from dataclasses import dataclass, field, replace
 import threading
-from typing import Callable, Dict, List, Tuple
+from typing import Callable, Dict, List, Set, Tuple
 
 from . import cia402
 from .drive_objects import DriveObjects
@@ -94,6 +94,7 @@ class DriveRecord:
     last_target: float = 0.0
     polling: bool = False
     polled: float = 0.0  # time.monotonic() of the last SDO read of its feedback
+    polled_mapped: Set[int] = field(default_factory=set)  # what TPDOs brought at that read
     timeouts: int = 0
     emcy_code: int = 0  # the error code of the last EMCY
     lost_powered: bool = False  # its heartbeat stopped while its power stage was on
