@@ -453,7 +453,7 @@ class DriveService:
         self._apply(drive, {index: values[index] for index in (*FEEDBACK, cia402.ERROR_CODE)
                             if index in values}, time.monotonic(), reread=request, since=since)
         await safety.secure_heard_drive(drive, self._lock, self._sdo_batch, self.settings,
-                                        self._beat_now)
+                                        self._beat_now, self.read_feedback)
         with self._lock:
             if request != drive.read_wanted:
                 return  # it booted meanwhile: a newer read follows

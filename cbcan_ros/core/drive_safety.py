@@ -76,8 +76,10 @@ def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
                     f'; not taken by {", ".join(failed)}' if failed else '')
 
 
-async def stop_unattended(drive: DriveRecord, lock, why: str) -> None:
+async def stop_unattended(drive: DriveRecord, lock, why: str) -> bool:
     """Quick-stop a drive nothing of ours commands any more, by SDO (applied at once).
+
+    Returns whether the drive took the stop.
 
     ``why``: 'found running' when heard (again without a boot, its heartbeat paused, it runs
     on at its last target; or one a crashed gateway left running at the gateway's start), or
@@ -96,19 +98,23 @@ async def stop_unattended(drive: DriveRecord, lock, why: str) -> None:
     else:
         LOGGER.error('drive %d %s, commanded by nobody here, and could not be stopped: %s',
                      drive.node_id, why, result.message)
+    return result.success
 
 
 async def secure_heard_drive(drive: DriveRecord, lock, sdo_batch, settings: DriveSettings,
-                             beat_now: Callable[[], None]) -> None:
+                             beat_now: Callable[[], None], read_feedback) -> None:
     """Quick-stop ``drive`` if it was found running, then have it watch the gateway.
 
-    The last steps of a re-read; its TPDOs count meanwhile (the stop's statusword among them).
+    The last steps of a re-read; its TPDOs count meanwhile. The stop's statusword is read
+    back (``read_feedback``, the drive service's): its TPDO may be taken only after the
+    re-read is shown, and the drive shown running after it was stopped.
     """
     try:
         with lock:
             running = drive.status.state == cia402.OPERATION_ENABLED
-        if running:
-            await stop_unattended(drive, lock, 'was OPERATION_ENABLED when heard')
+        if running and await stop_unattended(drive, lock, 'was OPERATION_ENABLED when heard'):
+            await asyncio.wrap_future(read_feedback(drive, [cia402.STATUSWORD],
+                                                    CONSUMER_TIMEOUT))
         await watch_the_gateway(sdo_batch, drive.node_id, settings, beat_now)
     except Exception as error:  # noqa: BLE001 - the drive is read; say what failed
         LOGGER.error('drive %d: its re-read could not finish (%r)', drive.node_id, error)
