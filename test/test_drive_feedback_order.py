@@ -19,7 +19,9 @@ then (the mapping read finished while the enable's first step went by SDO).
 from concurrent.futures import Future
 from dataclasses import replace
 import threading
+import time
 
+import can
 from test_drive_bus_faults import hold_next_answer
 from test_drives import CSV, NODE, PDOS, rig, WAIT  # noqa: F401 - rig is a fixture used by name
 
@@ -31,6 +33,7 @@ from conftest import wait_until
 PRE_OPERATIONAL, OPERATIONAL, RESET = 128, 1, 129  # NMT commands; the drive's states:
 DRIVE_PRE_OPERATIONAL, DRIVE_OPERATIONAL = 127, 5
 ERROR = 0x2310  # continuous over-current
+TPDO_1, HEARTBEAT = 0x180 + NODE, 0x700 + NODE
 # The statusword TPDO on change only, with no event timer to repeat it.
 ON_CHANGE = tuple(replace(pdo, event_timer=0) if (pdo.kind, pdo.number) == ('tpdo', 1)
                   else pdo for pdo in PDOS)
@@ -61,6 +64,16 @@ def hold_mapping_reads(monkeypatch) -> threading.Event:
         return result
     monkeypatch.setattr(PdoParameters, 'read', held)
     return release
+
+
+def next_frame(bus, wanted) -> can.Message:
+    """Return the next frame on ``bus`` for which ``wanted(frame)``."""
+    deadline = time.monotonic() + WAIT
+    while time.monotonic() < deadline:
+        frame = bus.recv(0.1)
+        if frame is not None and wanted(frame):
+            return frame
+    raise AssertionError('timed out waiting for a frame')
 
 
 def drive_record(axis):
@@ -107,13 +120,25 @@ def test_a_change_the_drive_sends_while_it_is_being_re_read_is_not_lost(rig):  #
 
 
 def test_a_fault_sent_before_the_gateway_knew_the_mapping_is_shown(rig, monkeypatch):  # noqa: F811
-    monkeypatch.setattr(drive_cycle, 'POLL_PERIOD', 60.0)  # no periodic read to find it
     release = hold_mapping_reads(monkeypatch)
     try:
         axis = rig(pdos=ON_CHANGE)
         wait_until(lambda: drive_record(axis).polled, WAIT, 'the first SDO read of feedback')
-        axis.drive.inject_fault(ERROR)
-        wait_until(lambda: axis.drive.drive_state == 'FAULT', WAIT, 'the drive in FAULT')
+        monkeypatch.setattr(drive_cycle, 'POLL_PERIOD', 60.0)  # no periodic read finds it
+        watch = axis.gateway.raw_bus()
+        try:
+            axis.drive.inject_fault(ERROR)
+            fault = next_frame(watch, lambda frame: frame.arbitration_id == TPDO_1
+                               and cia402.state_of(frame.data[0] | frame.data[1] << 8)
+                               == 'FAULT')
+            beat = next_frame(watch, lambda frame: frame.arbitration_id == HEARTBEAT)
+        finally:
+            watch.shutdown()
+        assert beat.timestamp > fault.timestamp
+        # The gateway takes frames in order: once it has the heartbeat, it had the TPDO.
+        monitor = axis.gateway.node.gateway.monitor
+        wait_until(lambda: monitor.status(NODE).last_seen >= beat.timestamp, WAIT,
+                   'the gateway hearing the drive after its FAULT TPDO')
     finally:
         release.set()
     wait_until(lambda: axis.latest_state() == 'FAULT', WAIT, 'drive_state FAULT')
@@ -121,10 +146,11 @@ def test_a_fault_sent_before_the_gateway_knew_the_mapping_is_shown(rig, monkeypa
 
 def test_an_enable_answered_by_a_tpdo_before_the_mapping_was_known_succeeds(
         rig, monkeypatch):  # noqa: F811
-    monkeypatch.setattr(drive_cycle, 'POLL_PERIOD', 60.0)
     release = hold_mapping_reads(monkeypatch)
     try:
         axis = rig(pdos=ON_CHANGE)
+        wait_until(lambda: drive_record(axis).polled, WAIT, 'the first SDO read of feedback')
+        monkeypatch.setattr(drive_cycle, 'POLL_PERIOD', 60.0)  # no periodic read finds it
         objects = drive_record(axis).objects
         write = objects.write
 

@@ -28,16 +28,16 @@ def poll(drive, lock, read_feedback: Callable[[object, List[int], float], Future
     """Read by SDO what no TPDO brings of a re-read drive: every ``POLL_PERIOD``, or ``now``.
 
     Feedback that TPDOs bring only since the last read is read once more, at once: a TPDO
-    sent before the gateway knew the mapping, or heard the drive OPERATIONAL, was not taken,
-    and one sent on change only is not sent again. ``read_feedback(drive, indexes, timeout)`` reads
-    and takes them (the drive service's); ``lock`` guards the drive record.
+    sent before the gateway knew the mapping was not taken, a drive not OPERATIONAL sent
+    none, and one sent on change only is not sent again. ``read_feedback(drive, indexes,
+    timeout)`` reads and takes them (the drive service's); ``lock`` guards the drive record.
     """
     with lock:
         if not drive.heard or drive.ready != drive.read_wanted:
             drive.polled_mapped = set()  # once re-read, all it maps counts as new
             return
         mapped = drive.objects.mapped_feedback()
-        drive.polled_mapped &= mapped  # unusable for a moment, TPDOs may have been lost
+        drive.polled_mapped &= mapped  # PRE_OPERATIONAL for a moment, it sent no TPDO
         if drive.polling:
             return
         fresh = mapped - drive.polled_mapped

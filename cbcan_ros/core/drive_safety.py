@@ -113,8 +113,12 @@ async def secure_heard_drive(drive: DriveRecord, lock, sdo_batch, settings: Driv
         with lock:
             running = drive.status.state == cia402.OPERATION_ENABLED
         if running and await stop_unattended(drive, lock, 'was OPERATION_ENABLED when heard'):
-            await asyncio.wrap_future(read_feedback(drive, [cia402.STATUSWORD],
-                                                    CONSUMER_TIMEOUT))
+            read = await asyncio.wrap_future(read_feedback(drive, [cia402.STATUSWORD],
+                                                           CONSUMER_TIMEOUT))
+            if cia402.STATUSWORD not in read:
+                LOGGER.warning('drive %d: its statusword after the quick stop could not be '
+                               'read; it is shown as read before until its next one',
+                               drive.node_id)
         await watch_the_gateway(sdo_batch, drive.node_id, settings, beat_now)
     except Exception as error:  # noqa: BLE001 - the drive is read; say what failed
         LOGGER.error('drive %d: its re-read could not finish (%r)', drive.node_id, error)
