@@ -19,11 +19,9 @@ then (the mapping read finished while the enable's first step went by SDO).
 from concurrent.futures import Future
 from dataclasses import replace
 import threading
-import time
 
-import can
 from test_drive_bus_faults import hold_next_answer
-from test_drives import CSV, NODE, PDOS, rig, WAIT  # noqa: F401 - rig is a fixture used by name
+from test_drives import CSV, NODE, PDOS, rig, WAIT, watch  # noqa: F401 - rig: a fixture
 
 from cbcan_ros.core import cia402, drive_cycle
 from cbcan_ros.core.pdo_parameters import PdoParameters
@@ -66,14 +64,10 @@ def hold_mapping_reads(monkeypatch) -> threading.Event:
     return release
 
 
-def next_frame(bus, wanted) -> can.Message:
-    """Return the next frame on ``bus`` for which ``wanted(frame)``."""
-    deadline = time.monotonic() + WAIT
-    while time.monotonic() < deadline:
-        frame = bus.recv(0.1)
-        if frame is not None and wanted(frame):
-            return frame
-    raise AssertionError('timed out waiting for a frame')
+def shows_fault(frame) -> bool:
+    """Return whether ``frame`` is the drive's TPDO 1 with a statusword saying FAULT."""
+    return (frame.arbitration_id == TPDO_1
+            and cia402.state_of(frame.data[0] | frame.data[1] << 8) == 'FAULT')
 
 
 def drive_record(axis):
@@ -125,15 +119,16 @@ def test_a_fault_sent_before_the_gateway_knew_the_mapping_is_shown(rig, monkeypa
         axis = rig(pdos=ON_CHANGE)
         wait_until(lambda: drive_record(axis).polled, WAIT, 'the first SDO read of feedback')
         monkeypatch.setattr(drive_cycle, 'POLL_PERIOD', 60.0)  # no periodic read finds it
-        watch = axis.gateway.raw_bus()
+        bus, frames = axis.gateway.raw_bus(), []
         try:
             axis.drive.inject_fault(ERROR)
-            fault = next_frame(watch, lambda frame: frame.arbitration_id == TPDO_1
-                               and cia402.state_of(frame.data[0] | frame.data[1] << 8)
-                               == 'FAULT')
-            beat = next_frame(watch, lambda frame: frame.arbitration_id == HEARTBEAT)
+            watch(bus, frames, lambda seen: any(map(shows_fault, seen)), 'the FAULT TPDO')
+            fault = next(filter(shows_fault, frames))
+            watch(bus, frames, lambda seen: seen[-1].arbitration_id == HEARTBEAT,
+                  'a heartbeat after it')
+            beat = frames[-1]
         finally:
-            watch.shutdown()
+            bus.shutdown()
         assert beat.timestamp > fault.timestamp
         # The gateway takes frames in order: once it has the heartbeat, it had the TPDO.
         monitor = axis.gateway.node.gateway.monitor
