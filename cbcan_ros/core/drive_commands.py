@@ -14,6 +14,7 @@ import contextvars
 from typing import Callable, Dict, Optional
 
 from . import cia402
+from .drive_arrival import HOME_HERE, missed, position_window
 from .drive_checks import ENABLED_COMMANDS, lost_problem, SHUTTING_DOWN, state_problem
 from .drive_standstill import wait_for_standstill
 from .drive_status import DriveResult
@@ -369,7 +370,26 @@ class DriveCommands:
         if status.statusword & cia402.MODE_BIT_13:
             raise DriveFailed(f'node {drive.node_id}: homing failed (statusword bit 13, '
                               f'homing error; method in 0x6098)')
-        return f'node {drive.node_id} homed: position {status.position} (drive units)'
+        return await self._homed_here(drive)
+
+    async def _homed_here(self, drive) -> str:
+        """Return the answer of a homing attained; raise when it did not set the position.
+
+        Checked for the methods that home where the axis stands (``drive_arrival``).
+        """
+        window = await position_window(drive, SEND_TIMEOUT)
+        read = await asyncio.wrap_future(self._service.read_feedback(
+            drive, [cia402.POSITION_ACTUAL], SEND_TIMEOUT))
+        setting = await asyncio.wrap_future(drive.objects.read(
+            [cia402.HOMING_METHOD, cia402.HOME_OFFSET], SEND_TIMEOUT))
+        position = read.get(cia402.POSITION_ACTUAL, self._service.status(drive.node_id).position)
+        offset = setting.get(cia402.HOME_OFFSET)
+        if (setting.get(cia402.HOMING_METHOD) in HOME_HERE and offset is not None
+                and abs(position - offset) > window):
+            raise DriveFailed(f'node {drive.node_id} shows homing attained at position '
+                              f'{position}, not at its home offset {offset} (0x607C; '
+                              f'position window {window}, in drive units)')
+        return f'node {drive.node_id} homed: position {position} (drive units)'
 
     # Profile position: moves and streamed set-points share the set-point handshake.
 
@@ -378,6 +398,11 @@ class DriveCommands:
         await self._change_to_pp(drive)
         if velocity:
             await self._send(drive, {cia402.PROFILE_VELOCITY_OBJECT: velocity})
+        window = await position_window(drive, SEND_TIMEOUT)
+        wanted = position
+        if relative:  # from where the axis stands: the set-point it last finished
+            await self._read_position(drive)
+            wanted += self._service.status(drive.node_id).position
         mark = await self._new_set_point(drive, position, relative)
         while True:
             status = await self._after(drive, mark, lambda s: True)
@@ -387,8 +412,13 @@ class DriveCommands:
             if status.target_reached:
                 # The TPDO with the position may lag the statusword's: the answer reads it.
                 await self._read_position(drive)
-                position = self._service.status(drive.node_id).position
-                return f'node {drive.node_id} reached position {position} (drive units)'
+                here = self._service.status(drive.node_id).position
+                if abs(here - wanted) > window:
+                    read = await asyncio.wrap_future(drive.objects.read(
+                        [cia402.TARGET_POSITION], SEND_TIMEOUT))
+                    raise DriveFailed(missed(drive.node_id, wanted, here, window,
+                                             read.get(cia402.TARGET_POSITION)))
+                return f'node {drive.node_id} reached position {here} (drive units)'
 
     async def _standstill(self, drive, just_halted: bool = True) -> None:
         await wait_for_standstill(self._service, drive, self._until, SEND_TIMEOUT, just_halted)

@@ -1,7 +1,9 @@
 """A drive's CiA 402 objects on the bus: by PDO wherever the drive maps them, by SDO otherwise.
 
 Writes go into the drive's receive PDOs as the PDO service read their mapping
-(``pdo.nodes``); an object no usable RPDO maps is written by SDO. A PDO carries every object it
+(``pdo.nodes``); an object no usable RPDO maps is written by SDO. Which frames carry a write,
+and in which order so that its controlword commits nothing early, is ``drive_frames``'s
+plan. A PDO carries every object it
 maps, so each frame is built from what the gateway last commanded for all of them: a
 controlword sent in the same RPDO as the target position and the mode repeats the commanded
 target and mode, never a zero the drive would take as a new one. An RPDO mapping a drive
@@ -19,9 +21,10 @@ run by SDO.
 from concurrent.futures import Future
 import struct
 import threading
-from typing import Dict, Iterable, List, Set
+from typing import Callable, Dict, Iterable, List, Optional, Set
 
 from . import cia402
+from .drive_frames import Frame, frame_values, Plan, plan, usable_frames
 from .pdo import PdoService
 from .pdo_mapping import EntryValue
 from .request_queue import answer, resolved
@@ -92,6 +95,8 @@ class DriveObjects:
         self._sync_producing = sync_producing
         self._lock = threading.Lock()
         self.commanded: Dict[int, int] = {}
+        self._writes = 0  # writes begun, numbered
+        self._controlword_write = 0  # the number of the latest write with a controlword
 
     def forget(self) -> None:
         """Drop the commanded values (the drive booted: they are read again)."""
@@ -104,36 +109,68 @@ class DriveObjects:
             self.commanded.update(values)
 
     def mapped_feedback(self) -> Set[int]:
-        """Return the feedback objects the drive sends in an enabled, usable TPDO."""
+        """Return the feedback objects the drive sends in an enabled, usable TPDO.
+
+        A synchronous TPDO is sent only after a SYNC: while the gateway produces none, its
+        objects are read by SDO (another master's SYNC is not counted on).
+        """
         if self.node_id not in self._pdo.node_ids or not self._operational():
             return set()
         tpdos, _ = self._pdo.mappings(self.node_id)
+        producing = self._sync_producing()
         return {entry.index for mapping in tpdos.values()
-                if mapping.enabled and not mapping.problem for entry in mapping.entries
+                if mapping.enabled and not mapping.problem
+                and (producing or not mapping.synchronous) for entry in mapping.entries
                 if entry.index in FEEDBACK and entry.subindex == 0}
 
     def write(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':
         """Send ``values`` (object: value) to the drive; resolves when all went out or why not.
 
-        Raises ValueError when a value does not fit its object (nothing is sent then). The
-        caller holds the drive's ``sending`` lock: frames built from ``commanded`` go out in
-        the order it changed.
+        Frames are chosen and ordered by ``drive_frames.plan``: what no usable RPDO carries
+        goes by SDO first, the controlword last. Raises ValueError when a value does not fit
+        its object (nothing is sent then). The caller holds the drive's ``sending`` lock:
+        frames built from ``commanded`` go out in the order it changed. A part that waits
+        (for an SDO confirmation or a SYNC) is not sent when a later write changed the
+        controlword meanwhile: the drive has that one, and this write is answered failed.
         """
         data = {index: encode(index, value) for index, value in values.items()}
         with self._lock:
+            previous = self.commanded.get(cia402.CONTROLWORD)
             self.commanded.update(values)
             commanded = dict(self.commanded)
+            self._writes += 1
+            if cia402.CONTROLWORD in values:
+                self._controlword_write = self._writes
+            write = self._writes
+        chosen = self._plan(list(values), commanded, previous is not None)
+        frames = list(chosen.frames)
+        last = (frames.pop() if cia402.CONTROLWORD in values and frames else None)
+        steps = []
+        if chosen.by_sdo:
+            steps.append(lambda: self._write_by_sdo(
+                [(index, data[index]) for index in chosen.by_sdo], timeout))
+        if frames:
+            steps.append(lambda: self._send_frames(frames, previous, write, last is None))
+        if last is not None:
+            steps.append(lambda: self._send_frames([last], previous, write, True))
+        return _chain(steps)
+
+    def _send_frames(self, frames: List[Frame], previous: Optional[int], write: int,
+                     carry_controlword: bool) -> 'Future[SdoResult]':
+        """Send ``frames`` of write number ``write`` (the last one with its controlword)."""
+        with self._lock:
+            if self._controlword_write > write:
+                return resolved(SdoResult.failed(
+                    f'node {self.node_id}: a later command changed the controlword before '
+                    f'this one was sent in full; the rest was not sent'))
+            commanded = dict(self.commanded)
         futures = []
-        by_sdo = set(values)
-        for number, indexes in self._rpdos_for(values, commanded).items():
+        for frame in frames:
+            carried = frame_values(frame, commanded, previous, carry_controlword)
             # As bytes of the profile's types, whatever type the PDO service knows.
-            futures.append(self._pdo.write(self.node_id, number, [
-                EntryValue(index, 0, data=encode(index, commanded[index]))
-                for index in indexes]))
-            by_sdo -= set(indexes)
-        if by_sdo:
-            futures.append(self._write_by_sdo([(index, data[index]) for index in sorted(
-                by_sdo, key=list(values).index)], timeout))
+            futures.append(self._pdo.write(self.node_id, frame.number, [
+                EntryValue(index, 0, data=encode(index, value))
+                for index, value in carried.items()]))
         return all_of(futures)
 
     def write_by_sdo(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':
@@ -181,29 +218,38 @@ class DriveObjects:
     def applied_at_sync(self, index: int) -> bool:
         """Return whether a write of ``index`` goes now in a synchronous RPDO."""
         with self._lock:
-            commanded = dict(self.commanded)
-        chosen = self._rpdos_for({index: commanded.get(index, 0)}, commanded)
-        _, rpdos = self._pdo.mappings(self.node_id)
-        return any(number in rpdos and rpdos[number].synchronous for number in chosen)
+            commanded = {index: 0, **self.commanded}
+        chosen = self._plan([index], commanded, cia402.CONTROLWORD in commanded)
+        return any(frame.synchronous and index in frame.indexes for frame in chosen.frames)
 
-    def _rpdos_for(self, values: Dict[int, int],
-                   commanded: Dict[int, int]) -> Dict[int, List[int]]:
-        """Return the usable RPDOs that carry some of ``values``: number -> objects mapped."""
+    def _plan(self, indexes: List[int], commanded: Dict[int, int],
+              controlword_known: bool) -> Plan:
+        """Return how a write of ``indexes`` goes out now (``drive_frames.plan``)."""
         if self.node_id not in self._pdo.node_ids or not self._operational():
-            return {}
+            return plan(indexes, (), controlword_known)
         _, rpdos = self._pdo.mappings(self.node_id)
-        chosen: Dict[int, List[int]] = {}
-        for number, mapping in rpdos.items():
-            if (not mapping.enabled or mapping.problem
-                    or (mapping.synchronous and not self._sync_producing())):
-                continue
-            mapped = [entry.index for entry in mapping.entries
-                      if entry.subindex == 0 and entry.index in COMMANDED]
-            if not set(mapped) & set(values) or not set(mapped) <= set(commanded):
-                continue
-            carried = {index for indexes in chosen.values() for index in indexes}
-            if set(mapped) & set(values) <= carried:
-                continue  # an RPDO chosen before carries them already
-            chosen[number] = mapped
-        return chosen
+        return plan(indexes, usable_frames(rpdos, commanded, self._sync_producing()),
+                    controlword_known)
 
+
+def _chain(steps: List[Callable[[], 'Future[SdoResult]']]) -> 'Future[SdoResult]':
+    """Run ``steps`` one after the other, each once the one before succeeded.
+
+    Resolves to the first failure, else to success once the last step's future resolved.
+    """
+    if not steps:
+        return resolved(SdoResult.ok())
+    first = steps[0]()
+    if len(steps) == 1:
+        return first
+    done: Future = Future()
+
+    def go_on(finished: Future) -> None:
+        result = finished.result()
+        if not result.success:
+            answer(done, result)
+            return
+        _chain(steps[1:]).add_done_callback(lambda rest: answer(done, rest.result()))
+
+    first.add_done_callback(go_on)
+    return done

@@ -6,7 +6,7 @@ Shared by the drive service (``drive``), its sequences (``drive_commands``) and 
 
 from dataclasses import dataclass, field, replace
 import threading
-from typing import Callable, Dict, List, Set, Tuple
+from typing import Callable, Dict, List, Optional, Set, Tuple
 
 from . import cia402
 from .drive_objects import DriveObjects
@@ -98,6 +98,7 @@ class DriveRecord:
     timeouts: int = 0
     emcy_code: int = 0  # the error code of the last EMCY
     lost_powered: bool = False  # its heartbeat stopped while its power stage was on
+    position_window: Optional[int] = None  # 0x6067 in drive units, once read (drive_arrival)
     waiters: List[Callable[[], None]] = field(default_factory=list)
     # Held from deciding what to send (a target, a halt, a stop, a step) until it is handed
     # to the bus: the drive gets frames in the order they were decided. Taken before the

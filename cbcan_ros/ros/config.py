@@ -15,6 +15,7 @@ from rclpy.parameter import Parameter
 from ..core import eds
 from ..core.gateway import GatewayConfig
 from ..core.write_protection import RULE_FORMAT, WriteProtection
+from ..simulation.simulated_drives import LAYOUTS
 from . import drive_parameters, raw_parameters
 from . import parameter_checks as checks
 
@@ -161,6 +162,13 @@ class NodeParameters:
                       'the PDOs a drive commonly has (needs the durand package); empty on a '
                       'real bus',
                       additional_constraints=checks.NODE_IDS)
+        self._declare('simulation.drive_layout', 'combined',
+                      'PDO layout of the simulated drives: combined (controlword, target '
+                      'position and mode in RPDO 1), vendor (the controlword in every RPDO, '
+                      'as Maxon EPOS2 and Faulhaber EDS files ship), ros2_canopen (the '
+                      'layout of its CiA 402 examples, synchronous TPDOs) or sdo_only (no '
+                      'PDO: run by SDO)',
+                      additional_constraints=', '.join(LAYOUTS))
         self._declare('simulation.eds', '',
                       'EDS file of the simulated devices; empty = the one shipped in config/')
         for node_id in self._listed_devices():
@@ -196,6 +204,10 @@ class NodeParameters:
             'simulation.devices': simulated, 'simulation.drives': simulated_drives,
             'drives.nodes': list(drives.node_ids)})
         checks.check_file('simulation.eds', value('simulation.eds'))
+        if value('simulation.drive_layout') not in LAYOUTS:
+            raise checks.ConfigurationError(
+                'simulation.drive_layout', value('simulation.drive_layout'),
+                'is no layout of a simulated drive', ', '.join(LAYOUTS))
         self.check_device_files()  # the core does not use them; a bad one stops the node here
         self.warnings = [warning for warning in (
             checks.check_bitrate(interface, value('can.bitrate')),

@@ -250,7 +250,8 @@ class GatewayInterface:
         drive_ids = parameters.node_ids('simulation.drives')
         if drive_ids:
             from ..simulation.simulated_drives import simulated_drives
-            devices += simulated_drives(drive_ids, self._node.get_logger().warning, **bus)
+            devices += simulated_drives(drive_ids, self._node.get_logger().warning,
+                                        parameters.value('simulation.drive_layout'), **bus)
         return devices
 
     def activate(self) -> None:

@@ -23,6 +23,7 @@ MODE = 0x6060
 MODE_DISPLAY = 0x6061
 POSITION_ACTUAL = 0x6064
 VELOCITY_ACTUAL = 0x606C
+POSITION_WINDOW = 0x6067
 TARGET_TORQUE = 0x6071
 TORQUE_ACTUAL = 0x6077
 TARGET_POSITION = 0x607A
@@ -57,6 +58,7 @@ OBJECTS = (
     (MODE_DISPLAY, DT.INTEGER8, 'ro', 0, 'Modes of operation display'),
     (POSITION_ACTUAL, DT.INTEGER32, 'ro', 0, 'Position actual value'),
     (VELOCITY_ACTUAL, DT.INTEGER32, 'ro', 0, 'Velocity actual value'),
+    (POSITION_WINDOW, DT.UNSIGNED32, 'rw', 10, 'Position window'),
     (TARGET_TORQUE, DT.INTEGER16, 'rw', 0, 'Target torque'),
     (TORQUE_ACTUAL, DT.INTEGER16, 'ro', 0, 'Torque actual value'),
     (TARGET_POSITION, DT.INTEGER32, 'rw', 0, 'Target position'),

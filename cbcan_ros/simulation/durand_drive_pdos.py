@@ -1,9 +1,21 @@
-"""The PDO mapping a simulated CiA 402 drive has out of the box, as real drives commonly ship.
+"""The PDO mappings a simulated CiA 402 drive can have out of the box: its layouts.
 
-The gateway reads it over SDO like any device's mapping (``pdo.nodes``), and its drive support
-can move the drive with it without configuring anything: the controlword, target position and
-mode of operation in RPDO 1, target velocity and torque in RPDO 2; the statusword with the mode
-shown and the torque in TPDO 1, position and velocity in TPDO 2.
+The gateway reads them over SDO like any device's mapping (``pdo.nodes``), and its drive
+support must move the drive with each without configuring anything (named in
+``simulated_drives.LAYOUTS``):
+
+- ``combined`` (``make run``'s drive): the controlword, target position and mode of operation
+  in RPDO 1, target velocity and torque in RPDO 2; the statusword with the mode shown and the
+  torque in TPDO 1, position and velocity in TPDO 2.
+- ``vendor``: the CiA 402 defaults of vendor EDS files (Maxon EPOS2, Faulhaber MC,
+  Wittenstein simco): the controlword in every RPDO, alone in RPDO 1, with the mode in
+  RPDO 2, the target position in RPDO 3, the target velocity in RPDO 4; the statusword in
+  every TPDO, with the mode shown in TPDO 2, the position in TPDO 3, the velocity in TPDO 4.
+- ``ros2_canopen``: the layout of ros2_canopen's CiA 402 examples
+  (``canopen_tests/config/cia402/bus.yml``): controlword and mode in RPDO 1, target position
+  and velocity in RPDO 2; statusword and mode shown in TPDO 1, position and velocity in
+  TPDO 2, both TPDOs synchronous (sent only while a master produces SYNC).
+- ``sdo_only``: no PDO enabled; the drive is run by SDO alone.
 """
 
 from typing import Tuple
@@ -47,9 +59,7 @@ def default_drive_pdos(transmission_type: int = 0) -> Tuple[PdoConfig, ...]:
     bus), and RPDOs are applied as they arrive. ``transmission_type`` 1..240 makes all four
     synchronous instead, without event timers.
     """
-    # PDOs 3 and 4 are off: durand has them on, with nothing mapped.
-    unused = tuple(PdoConfig(kind, number, (), enabled=False)
-                   for kind in ('tpdo', 'rpdo') for number in (3, 4))
+    unused = _unused((3, 4))  # durand has them on, with nothing mapped
     if transmission_type:
         return tuple(PdoConfig(kind, number, mapping, transmission_type)
                      for kind, number, mapping in (('tpdo', 1, STATUS), ('tpdo', 2, MOTION),
@@ -61,3 +71,39 @@ def default_drive_pdos(transmission_type: int = 0) -> Tuple[PdoConfig, ...]:
         PdoConfig('rpdo', 1, COMMAND, EVENT_DRIVEN),
         PdoConfig('rpdo', 2, SET_POINTS, EVENT_DRIVEN),
     ) + unused
+
+
+def vendor_drive_pdos() -> Tuple[PdoConfig, ...]:
+    """Return the CiA 402 vendor default layout: the controlword in every RPDO."""
+    controlword, statusword = (CONTROLWORD, 0), (STATUSWORD, 0)
+    rpdos = ((controlword,), (controlword, (MODE, 0)), (controlword, (TARGET_POSITION, 0)),
+             (controlword, (TARGET_VELOCITY, 0)))
+    tpdos = ((statusword,), (statusword, (MODE_DISPLAY, 0)),
+             (statusword, (POSITION_ACTUAL, 0)), (statusword, (VELOCITY_ACTUAL, 0)))
+    return tuple(PdoConfig('rpdo', number, mapping, EVENT_DRIVEN)
+                 for number, mapping in enumerate(rpdos, 1)) + tuple(
+        PdoConfig('tpdo', number, mapping, EVENT_DRIVEN, event_timer=STATUS_EVENT_TIMER)
+        if number <= 2 else
+        PdoConfig('tpdo', number, mapping, TIMER_DRIVEN, event_timer=MOTION_EVENT_TIMER)
+        for number, mapping in enumerate(tpdos, 1))
+
+
+def ros2_canopen_drive_pdos() -> Tuple[PdoConfig, ...]:
+    """Return the layout of ros2_canopen's CiA 402 examples: synchronous TPDOs."""
+    return (
+        PdoConfig('tpdo', 1, ((STATUSWORD, 0), (MODE_DISPLAY, 0)), SYNCHRONOUS),
+        PdoConfig('tpdo', 2, MOTION, SYNCHRONOUS),
+        PdoConfig('rpdo', 1, ((CONTROLWORD, 0), (MODE, 0)), EVENT_DRIVEN),
+        PdoConfig('rpdo', 2, ((TARGET_POSITION, 0), (TARGET_VELOCITY, 0)), EVENT_DRIVEN),
+    ) + _unused((3, 4))
+
+
+def sdo_only_drive_pdos() -> Tuple[PdoConfig, ...]:
+    """Return a layout with every PDO disabled: the drive is run by SDO."""
+    return _unused((1, 2, 3, 4))
+
+
+def _unused(numbers) -> Tuple[PdoConfig, ...]:
+    return tuple(PdoConfig(kind, number, (), enabled=False)
+                 for kind in ('tpdo', 'rpdo') for number in numbers)
+

@@ -6,22 +6,32 @@ with its other simulated devices, and says why the drives are missing.
 
 from typing import Callable, List
 
+# The PDO layouts a simulated drive can have (``simulation.drive_layout``; described in
+# ``durand_drive_pdos``), each by the function there that makes it; the first is the default.
+LAYOUTS = {
+    'combined': 'default_drive_pdos',
+    'vendor': 'vendor_drive_pdos',
+    'ros2_canopen': 'ros2_canopen_drive_pdos',
+    'sdo_only': 'sdo_only_drive_pdos',
+}
+
 
 def simulated_drives(node_ids: List[int], warn: Callable[[str], None],
-                     **bus_options) -> list:
-    """Return drives with the PDOs of a common drive (``durand_drive_pdos``), not yet started.
+                     layout: str = 'combined', **bus_options) -> list:
+    """Return drives with the PDO ``layout`` of ``LAYOUTS``, not yet started.
 
     ``bus_options`` are those of :class:`DurandDrive` (interface, channel). Without durand,
     ``warn`` says so and none is returned.
     """
     try:
+        from . import durand_drive_pdos
         from .durand_drive import DurandDrive
-        from .durand_drive_pdos import default_drive_pdos
     except ModuleNotFoundError as error:
         if error.name != 'durand':
             raise
         warn(f'parameter simulation.drives: drives {node_ids} are not simulated: they need '
              f'the Python package durand (pip install durand==0.5.0)')
         return []
-    return [DurandDrive(node_id, pdos=default_drive_pdos(), **bus_options)
+    pdos = getattr(durand_drive_pdos, LAYOUTS[layout])
+    return [DurandDrive(node_id, pdos=pdos(), **bus_options)
             for node_id in node_ids]

@@ -1,0 +1,170 @@
+"""Which receive PDOs carry one write to a drive, and in what order: nothing committed early.
+
+A drive acts on its controlword as a frame carrying it arrives (an event-driven RPDO) or at
+the SYNC after it (a synchronous one): a rising bit 4 takes the target position the drive
+holds then, bit 7 resets a fault, the enable bits start the power stage in the mode it holds.
+So for one write the values the controlword commits must be in the drive before the
+controlword is. Real drives map the controlword into several RPDOs, and rarely next to the
+object a write needs (a Maxon EPOS2 ships RPDO1 = 0x6040, RPDO2 = 0x6040 + 0x6060, RPDO3 =
+0x6040 + 0x607A, RPDO4 = 0x6040 + 0x60FF), so the plan for a write is:
+
+- the fewest usable RPDOs that carry its objects (ties: fewest frames carrying the
+  controlword, then the smallest frames, then the lowest numbers);
+- the write's controlword in exactly one of them, the last one sent; an earlier frame that
+  maps the controlword too repeats the one the gateway commanded before the write (no edge);
+- objects no usable RPDO carries go by SDO first, and the frames wait for their confirmation;
+- when no usable RPDO carries the controlword, the whole write goes by SDO, in order, the
+  controlword last (an SDO write is applied as it is confirmed);
+- a synchronous frame before an event-driven controlword frame would be applied after it
+  (at the next SYNC): such a set of frames is not used.
+
+An RPDO is usable when it is enabled, sound, synchronous only while the gateway produces SYNC,
+and maps nothing but objects the gateway commands (subindex 0) whose values it knows: a frame
+carries every object it maps, and a vendor object the gateway holds no value for would go out
+as a value of the gateway's making.
+"""
+
+from dataclasses import dataclass
+from itertools import combinations
+from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+
+from . import cia402
+from .pdo_mapping import PdoMapping
+
+# Beyond this many candidate RPDOs the cover is chosen greedily (CiA 301 allows 512; drives
+# have 4 to 8).
+EXACT_SEARCH_LIMIT = 12
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One RPDO of a write: the commanded objects it maps, in mapping order."""
+
+    number: int
+    indexes: Tuple[int, ...]
+    synchronous: bool
+
+    @property
+    def controlword(self) -> bool:
+        """Return whether the frame maps the controlword."""
+        return cia402.CONTROLWORD in self.indexes
+
+
+@dataclass(frozen=True)
+class Plan:
+    """How one write goes out: ``by_sdo`` first (in order), then ``frames`` in order.
+
+    When the write has a controlword and ``frames`` is not empty, the last frame carries it
+    and the others repeat the one commanded before.
+    """
+
+    by_sdo: Tuple[int, ...]
+    frames: Tuple[Frame, ...]
+
+
+def usable_frames(rpdos: Mapping[int, PdoMapping], commanded: Iterable[int],
+                  sync_producing: bool) -> List[Frame]:
+    """Return the RPDOs a write may use, as frames; ``commanded``: the objects with a value."""
+    known = set(commanded)
+    frames = []
+    for number, mapping in sorted(rpdos.items()):
+        if (not mapping.enabled or mapping.problem or not mapping.entries
+                or (mapping.synchronous and not sync_producing)):
+            continue
+        entries = [entry for entry in mapping.entries if not entry.dummy]
+        if any(entry.subindex != 0 or entry.index not in known for entry in entries):
+            continue
+        frames.append(Frame(number, tuple(entry.index for entry in entries),
+                            mapping.synchronous))
+    return frames
+
+
+def plan(values: Sequence[int], frames: Sequence[Frame], controlword_known: bool) -> Plan:
+    """Return how to send the objects ``values`` (in the write's order) over ``frames``.
+
+    ``frames`` are the usable ones (``usable_frames``, with the write's values known);
+    ``controlword_known``: the gateway commanded a controlword before this write, which an
+    earlier frame mapping it can repeat.
+    """
+    wanted = list(dict.fromkeys(values))
+    candidates = [frame for frame in frames if set(frame.indexes) & set(wanted)]
+    coverable = {index for frame in candidates for index in frame.indexes} & set(wanted)
+    has_controlword = cia402.CONTROLWORD in wanted
+    if has_controlword and cia402.CONTROLWORD not in coverable:
+        # The controlword by SDO is applied at once: everything before it goes by SDO too.
+        ordered = [index for index in wanted if index != cia402.CONTROLWORD]
+        return Plan(tuple(ordered + [cia402.CONTROLWORD]), ())
+    chosen = _cover(candidates, coverable, has_controlword, controlword_known)
+    if chosen is None:
+        if has_controlword:
+            ordered = [index for index in wanted if index != cia402.CONTROLWORD]
+            return Plan(tuple(ordered + [cia402.CONTROLWORD]), ())
+        return Plan(tuple(wanted), ())
+    by_sdo = tuple(index for index in wanted if index not in coverable)
+    return Plan(by_sdo, chosen)
+
+
+def _cover(candidates: List[Frame], coverable: set, has_controlword: bool,
+           controlword_known: bool) -> Optional[Tuple[Frame, ...]]:
+    """Return the best ordered set of frames carrying ``coverable``, None when none fits."""
+    if not coverable:
+        return ()
+    if len(candidates) > EXACT_SEARCH_LIMIT:
+        return _greedy(candidates, coverable, has_controlword, controlword_known)
+    for size in range(1, len(candidates) + 1):
+        best: Optional[Tuple[Tuple, Tuple[Frame, ...]]] = None
+        for combo in combinations(candidates, size):
+            if not coverable <= {index for frame in combo for index in frame.indexes}:
+                continue
+            ordered = _ordered(combo, has_controlword, controlword_known)
+            if ordered is None:
+                continue
+            score = (sum(frame.controlword for frame in ordered),
+                     sum(len(frame.indexes) for frame in ordered),
+                     tuple(frame.number for frame in ordered))
+            if best is None or score < best[0]:
+                best = (score, ordered)
+        if best is not None:
+            return best[1]
+    return None
+
+
+def _greedy(candidates: List[Frame], coverable: set, has_controlword: bool,
+            controlword_known: bool) -> Optional[Tuple[Frame, ...]]:
+    left, combo = set(coverable), []
+    while left:
+        frame = max(candidates, key=lambda f: (len(left & set(f.indexes)), -f.number))
+        if not left & set(frame.indexes):
+            return None
+        combo.append(frame)
+        left -= set(frame.indexes)
+    return _ordered(combo, has_controlword, controlword_known)
+
+
+def _ordered(combo: Iterable[Frame], has_controlword: bool,
+             controlword_known: bool) -> Optional[Tuple[Frame, ...]]:
+    """Return ``combo`` in sending order, the controlword's frame last; None when unfit."""
+    frames = sorted(combo, key=lambda frame: frame.number)
+    if not has_controlword:
+        if not controlword_known and any(frame.controlword for frame in frames):
+            return None
+        return tuple(frames)
+    carriers = sorted((frame for frame in frames if frame.controlword),
+                      key=lambda frame: (frame.synchronous, frame.number), reverse=True)
+    for last in carriers:
+        before = [frame for frame in frames if frame is not last]
+        if any(frame.controlword for frame in before) and not controlword_known:
+            return None
+        if last.synchronous or not any(frame.synchronous for frame in before):
+            return (*before, last)
+        # Else a synchronous frame, applied at the next SYNC, would come after the controlword.
+    return None
+
+
+def frame_values(frame: Frame, commanded: Dict[int, int], previous_controlword: Optional[int],
+                 carries_write_controlword: bool) -> Dict[int, int]:
+    """Return the values ``frame`` carries: the commanded ones, the controlword as it goes."""
+    values = {index: commanded[index] for index in frame.indexes}
+    if frame.controlword and not carries_write_controlword:
+        values[cia402.CONTROLWORD] = previous_controlword
+    return values

@@ -1,0 +1,150 @@
+"""Every drive behaviour on every PDO layout real drives ship, the frames on the bus in order.
+
+The simulated drive takes each layout of ``simulated_drives.LAYOUTS``: ``make run``'s combined
+RPDO, the CiA 402 vendor default of EPOS2 or Faulhaber EDS files (the controlword in every
+RPDO, the target position only in RPDO 3), ros2_canopen's example layout (the controlword in
+RPDO 1, the target position in RPDO 2, synchronous TPDOs) and none at all (SDO). Each test
+runs the drive as a robot program would and asserts what the drive did, and for the
+set-point handshake what went on the bus: the target in the drive before the controlword's
+rising bit 4, which the drive takes with the target it holds then.
+"""
+
+import struct
+
+from action_msgs.msg import GoalStatus
+import pytest
+from std_msgs.msg import Float64
+import test_drives
+from test_drives import CSP, CST, CSV, HOMING, NODE, PP, PV, SCALE, WAIT, watch
+
+from cbcan_ros.action import DriveMove
+from cbcan_ros.core import cia402
+from cbcan_ros.simulation import durand_drive_pdos
+from cbcan_ros.simulation.durand_drive_objects import TARGET_POSITION
+from cbcan_ros.simulation.simulated_drives import LAYOUTS
+
+from conftest import wait_for_future, wait_until
+
+rig = test_drives.rig  # a gateway with one simulated drive (a fixture)
+
+# The mapping of each RPDO (COB-ID 0x200 + 0x100 * (n - 1) + node) in a layout.
+RPDO_COB_IDS = {1: 0x200, 2: 0x300, 3: 0x400, 4: 0x500}
+SDO_REQUEST = 0x600
+EXPEDITED_DOWNLOAD = 0x20  # command specifier 1 of a client's SDO request
+
+
+def layout_pdos(layout: str):
+    """Return the PdoConfigs of ``layout``."""
+    return getattr(durand_drive_pdos, LAYOUTS[layout])()
+
+
+def writes_on_the_bus(frames: list, layout: str) -> list:
+    """Return the drive-object writes among ``frames``: one {index: value} per frame.
+
+    RPDO frames are decoded by the layout's mapping, SDO downloads by their index.
+    """
+    rpdos = {RPDO_COB_IDS[config.number] + NODE: config.mapping
+             for config in layout_pdos(layout) if config.kind == 'rpdo' and config.enabled}
+    writes = []
+    for message in frames:
+        data = bytes(message.data)
+        if message.arbitration_id in rpdos:
+            values, offset = {}, 0
+            for index, _subindex in rpdos[message.arbitration_id]:
+                fmt = cia402.FORMATS[index]
+                values[index] = struct.unpack_from(fmt, data, offset)[0]
+                offset += struct.calcsize(fmt)
+            writes.append(values)
+        elif (message.arbitration_id == SDO_REQUEST + NODE and data[0] & 0xE0 == EXPEDITED_DOWNLOAD
+              and struct.unpack_from('<H', data, 1)[0] in cia402.FORMATS):
+            index = struct.unpack_from('<H', data, 1)[0]
+            fmt = cia402.FORMATS[index]
+            writes.append({index: struct.unpack_from(fmt, data, 4)[0]})
+    return writes
+
+
+def set_points_taken(writes: list) -> list:
+    """Return, for each rising bit 4 of the controlword, the target position the drive held.
+
+    Also returns how many frames carried each new controlword value.
+    """
+    held, taken, controlword = {}, [], 0
+    for values in writes:
+        held.update(values)
+        word = values.get(cia402.CONTROLWORD, controlword)
+        if word & cia402.NEW_SET_POINT and not controlword & cia402.NEW_SET_POINT:
+            taken.append(held.get(TARGET_POSITION))
+        controlword = word
+    return taken
+
+
+@pytest.fixture(params=list(LAYOUTS))
+def layout(request):
+    """Return the name of a simulated drive's PDO layout."""
+    return request.param
+
+
+def move(axis, position: float, relative: bool = False):
+    """Run a ~/move goal to ``position`` (rad) at 20 rad/s; return its result."""
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    goal = wait_for_future(axis.mover.send_goal_async(DriveMove.Goal(
+        node_id=NODE, position=position, velocity=20.0, relative=relative)), WAIT)
+    assert goal.accepted
+    return wait_for_future(goal.get_result_async(), WAIT)
+
+
+def test_a_move_reaches_its_target_and_the_drive_takes_each_set_point_with_it(rig, layout):
+    axis = rig(pdos=layout_pdos(layout))
+    axis.enable(PP)
+    start = axis.drive.position
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        absolute = move(axis, start / SCALE + 3.0)
+        assert absolute.status == GoalStatus.STATUS_SUCCEEDED
+        assert absolute.result.success, absolute.result.message
+        assert axis.drive.position == start + 3000
+        relative = move(axis, -1.0, relative=True)
+        assert relative.result.success, relative.result.message
+        assert axis.drive.position == start + 2000
+        watch(bus, frames, lambda seen: len(set_points_taken(
+            writes_on_the_bus(seen, layout))) >= 2, 'both set-points on the bus')
+    finally:
+        bus.shutdown()
+    # Each rising bit 4 found the move's own target in the drive: the absolute one, then
+    # the distance of the relative one (-1000 counts).
+    assert set_points_taken(writes_on_the_bus(frames, layout)) == [start + 3000, -1000]
+
+
+def test_a_move_is_not_fooled_by_a_stale_target_left_in_the_drive(rig, layout):
+    axis = rig(pdos=layout_pdos(layout))
+    start = axis.drive.position
+    # Another master (or a power-on default) left a set-point in 0x607A: the drive's own
+    # start position, so a set-point taken with it reaches "target" without moving.
+    axis.drive.set_value(TARGET_POSITION, 0, struct.pack('<i', start))
+    axis.enable(PP)
+    result = move(axis, start / SCALE + 3.0)
+    assert result.result.success, result.result.message
+    assert axis.drive.position == start + 3000
+    assert result.result.position == pytest.approx(start / SCALE + 3.0)
+
+
+def test_every_mode_enables_and_takes_its_targets(rig, layout):
+    axis = rig(pdos=layout_pdos(layout))
+    for mode in (PP, PV, HOMING, CSP, CSV, CST):
+        response = axis.enable(mode)
+        assert (response.state, response.mode) == ('OPERATION_ENABLED', mode)
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=1.5))
+    wait_until(lambda: axis.drive.velocity == 1500, WAIT, 'the drive at 1500 counts/s (CSV)')
+    axis.enable(PV)
+    axis.target.publish(Float64(data=-0.5))
+    wait_until(lambda: axis.drive.velocity == -500, WAIT, 'the drive at -500 counts/s (PV)')
+    assert axis.command('halt', timeout=WAIT).success
+    axis.enable(CSP)
+    start = axis.drive.position
+    axis.target.publish(Float64(data=start / SCALE + 0.25))
+    wait_until(lambda: axis.drive.position == start + 250, WAIT, 'the drive 250 counts on (CSP)')
+    axis.enable(CST)
+    axis.target.publish(Float64(data=3.0))
+    wait_until(lambda: axis.drive.torque == 3, WAIT, 'the drive at torque 3 (CST)')
+    assert axis.command('disable').state == 'SWITCH_ON_DISABLED'
