@@ -37,8 +37,9 @@ def enabled_behind_a_faulty_adapter(start_durand, watching: bool = True, pdos=PD
 
     ``watching``: the drive watches the gateway's heartbeat (and stops when cut off).
     """
-    watch = {'heartbeat.node_id': OWN_ID, 'heartbeat.period': 0.1,
-             'drives.consumer_time': CONSUMER_MS / 1000} if watching else {}
+    watch = ({'heartbeat.node_id': OWN_ID, 'heartbeat.period': 0.1,
+              'drives.consumer_time': CONSUMER_MS / 1000} if watching
+             else {'drives.keep_running_if_gateway_dies': True})
     axis = Rig(start_durand, pdos, **{'can.interface': 'faulty', 'heartbeat.timeout': 0.5,
                                       **watch})
     faults = FaultController.get(axis.gateway.channel)

@@ -45,7 +45,7 @@ class Axis:
                                 'drives.nodes': [NODE], f'node_{NODE}.joint': JOINT,
                                 f'node_{NODE}.position_scale': SCALE,
                                 f'node_{NODE}.velocity_scale': SCALE,
-                                'drives.command_timeout': 0.0})
+                                'drives.command_timeout': 0.0, 'drives.consumer_time': 3.0})
         self._capsys = capsys
         self._lock = threading.Lock()
         self._states: List[DriveState] = []

@@ -19,23 +19,19 @@ from test_drives import CSP, CST, CSV, HOMING, NODE, PP, PV, SCALE, WAIT, watch
 
 from cbcan_ros.action import DriveMove
 from cbcan_ros.core import cia402
-from cbcan_ros.simulation import durand_drive_pdos
-from cbcan_ros.simulation.durand_drive_objects import TARGET_POSITION
+from cbcan_ros.simulation.durand_drive_objects import HOME_OFFSET, TARGET_POSITION
+from cbcan_ros.simulation.durand_drive_pdos import drive_pdos as layout_pdos
 from cbcan_ros.simulation.simulated_drives import LAYOUTS
 
 from conftest import wait_for_future, wait_until
 
 rig = test_drives.rig  # a gateway with one simulated drive (a fixture)
+PT = 4  # profile torque
 
 # The mapping of each RPDO (COB-ID 0x200 + 0x100 * (n - 1) + node) in a layout.
 RPDO_COB_IDS = {1: 0x200, 2: 0x300, 3: 0x400, 4: 0x500}
 SDO_REQUEST = 0x600
 EXPEDITED_DOWNLOAD = 0x20  # command specifier 1 of a client's SDO request
-
-
-def layout_pdos(layout: str):
-    """Return the PdoConfigs of ``layout``."""
-    return getattr(durand_drive_pdos, LAYOUTS[layout])()
 
 
 def writes_on_the_bus(frames: list, layout: str) -> list:
@@ -148,3 +144,84 @@ def test_every_mode_enables_and_takes_its_targets(rig, layout):
     axis.target.publish(Float64(data=3.0))
     wait_until(lambda: axis.drive.torque == 3, WAIT, 'the drive at torque 3 (CST)')
     assert axis.command('disable').state == 'SWITCH_ON_DISABLED'
+
+
+def test_a_move_the_drive_finishes_away_from_its_target_fails_naming_both(rig):
+    axis = rig()
+    axis.enable(PP)
+    start = axis.drive.position
+    take = axis.drive._take_set_point
+
+    def stale(controlword):
+        # A drive that takes the set-point with the target it held before the frame.
+        axis.drive.node.object_dictionary.write(TARGET_POSITION, 0, start)
+        take(controlword)
+    axis.drive._take_set_point = stale
+    result = move(axis, start / SCALE + 3.0).result
+    assert not result.success
+    assert axis.drive.position == start
+    assert f'at position {start}, not at the target {start + 3000}' in result.message
+    assert '(0x607A) read back: ' in result.message
+
+
+def test_halt_resume_quick_stop_fault_reset_and_homing(rig, layout):
+    axis = rig(pdos=layout_pdos(layout))
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=1.0))
+    wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    halted = axis.command('halt', timeout=WAIT)
+    assert halted.success, halted.message
+    assert axis.drive.velocity == 0
+    assert axis.command('resume').success
+    axis.target.publish(Float64(data=0.5))
+    wait_until(lambda: axis.drive.velocity == 500, WAIT, 'the drive at 500 counts/s again')
+    stopped = axis.command('quick_stop', timeout=WAIT)
+    assert stopped.success, stopped.message
+    wait_until(lambda: axis.drive.velocity == 0, WAIT, 'the quick-stopped drive standing')
+    axis.enable(CSV)
+    axis.drive.inject_fault(0x2310)
+    wait_until(lambda: axis.latest_state() == 'FAULT', WAIT, 'drive_state FAULT')
+    assert not axis.command('enable', CSV).success
+    reset = axis.command('fault_reset')
+    assert reset.success and reset.state == 'SWITCH_ON_DISABLED', reset.message
+    axis.drive.set_value(HOME_OFFSET, 0, struct.pack('<i', 1234))
+    axis.enable(PP)
+    homed = axis.command('home', timeout=WAIT)
+    assert homed.success, homed.message
+    assert axis.drive.position == 1234
+
+
+def test_the_command_timeout_halts_a_streaming_drive(rig, layout):
+    axis = rig(pdos=layout_pdos(layout), **{'drives.command_timeout': 0.3})
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=1.0))
+    wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    wait_until(lambda: axis.drive.velocity == 0, WAIT, 'the drive halted without targets')
+    wait_until(lambda: axis.states[-1].halted, WAIT, 'drive_state halted')
+    axis.target.publish(Float64(data=0.7))
+    wait_until(lambda: axis.drive.velocity == 700, WAIT, 'the drive moving again')
+
+
+@pytest.mark.parametrize('mode, target', [(CSV, 1.0), (CSP, None), (CST, 5.0), (PT, 5.0)],
+                         ids=['CSV', 'CSP', 'CST', 'PT'])
+def test_the_command_timeout_stops_a_drive_that_ignores_the_halt_bit(rig, mode, target):
+    # Several vendors' drives ignore controlword bit 8 in the cyclic modes: the command
+    # timeout sets the target that stops the axis too (CSP: where it stands).
+    axis = rig(**{'drives.command_timeout': 0.3})
+    axis.drive.halts_in_cyclic_modes = False
+    axis.enable(mode)
+    if mode == CSP:  # a stream that keeps the axis moving, then silence
+        start = axis.drive.position
+        for step in range(1, 6):
+            axis.target.publish(Float64(data=(start + 100 * step) / SCALE))
+        wait_until(lambda: axis.drive.position == start + 500, WAIT, 'the drive 500 on')
+        wait_until(lambda: axis.states[-1].halted, WAIT, 'drive_state halted')
+        assert axis.drive.position == start + 500
+        return
+    axis.target.publish(Float64(data=target))
+    moving = (lambda: axis.drive.velocity == 1000) if mode == CSV else (
+        lambda: axis.drive.torque == 5)
+    wait_until(moving, WAIT, 'the drive following its target')
+    wait_until(lambda: axis.states[-1].halted, WAIT, 'drive_state halted')
+    wait_until(lambda: axis.drive.velocity == 0 and axis.drive.torque == 0, WAIT,
+               'the drive stopped by its target though it ignores the halt bit')

@@ -31,7 +31,9 @@ from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.ros.node import SHUTDOWN_LIMIT
 from cbcan_ros.simulation.durand_drive import DurandDrive
 from cbcan_ros.simulation.durand_drive_pdos import default_drive_pdos
+from cbcan_ros.simulation.durand_drive_pdos import drive_pdos as layout_pdos
 from cbcan_ros.simulation.durand_scheduler import shared_scheduler
+from cbcan_ros.simulation.simulated_drives import LAYOUTS
 from cbcan_ros.srv import DriveCommand, NmtCommand
 
 from conftest import wait_until
@@ -66,6 +68,9 @@ QUICK_STOP, DISABLE_VOLTAGE = 0x0002, 0x0000
 STOPPED = ('QUICK_STOP_ACTIVE', 'SWITCH_ON_DISABLED')
 
 PDOS = default_drive_pdos()  # the simulated drive's own, as make run has them
+# The drives watch the gateway by default; unless a test says otherwise, with a consumer
+# time that a busy test machine's pauses do not reach.
+CONSUMER_TIME = 3.0
 
 
 # Reading the frames.
@@ -183,8 +188,9 @@ class DriveRig:
     """A gateway process with drive NODE, the drive in this process, the bus recorded."""
 
     def __init__(self, start_node, client_node, start_durand, *parameters: str,
-                 program: str = 'cbcan_node'):
+                 program: str = 'cbcan_node', pdos=PDOS):
         self.group, self.port = private_bus()
+        self._pdos = pdos
         self.recorder = Recorder(self.group, self.port)
         self._start_durand = start_durand
         self.drive = self.start_drive()
@@ -192,7 +198,8 @@ class DriveRig:
         self.client_node = client_node
         self.node = start_node(arguments(
             self.name, '-p', 'can.interface:=udp_multicast', '-p', f'can.channel:={self.group}',
-            '-p', f'drives.nodes:=[{NODE}]', *parameters), self.port, program)
+            '-p', f'drives.nodes:=[{NODE}]', '-p', f'drives.consumer_time:={CONSUMER_TIME}',
+            *parameters), self.port, program)
         self._lock = threading.Lock()
         self.states = []
         client_node.create_subscription(DriveState, f'{self.name}/node_{NODE}/drive_state',
@@ -206,7 +213,7 @@ class DriveRig:
         """Start a drive NODE on the bus (a new one boots, as after power-on)."""
         drive = self._start_durand(NODE, kind=DurandDrive, interface='udp_multicast',
                                    channel=self.group, bus_options={'port': self.port},
-                                   pdos=PDOS)
+                                   pdos=self._pdos)
         wait_until(lambda: drive.running, ANSWER, 'the drive receiving')
         return drive
 
@@ -315,12 +322,12 @@ class DriveRig:
 
 @pytest.fixture
 def rig(start_node, client_node, start_durand):
-    """Return ``rig(*parameters, program=...)``: a DriveRig, closed after the test."""
+    """Return ``rig(*parameters, program=..., pdos=...)``: a DriveRig, closed after the test."""
     made = []
 
-    def factory(*parameters: str, program: str = 'cbcan_node') -> DriveRig:
+    def factory(*parameters: str, program: str = 'cbcan_node', pdos=PDOS) -> DriveRig:
         made.append(DriveRig(start_node, client_node, start_durand, *parameters,
-                             program=program))
+                             program=program, pdos=pdos))
         return made[-1]
     yield factory
     for each in made:
@@ -371,10 +378,13 @@ def nothing_to_the_drive_after(rig: DriveRig, position: int, what: str) -> None:
 
 # 1. Signals.
 
-@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
-def test_a_signal_quick_stops_an_enabled_drive_before_the_node_exits(rig, signum):
+@pytest.mark.parametrize('signum, layout', [
+    (signal.SIGINT, 'combined'), (signal.SIGTERM, 'combined'), (signal.SIGINT, 'vendor'),
+    (signal.SIGINT, 'ros2_canopen'), (signal.SIGINT, 'sdo_only')],
+    ids=['SIGINT', 'SIGTERM', 'SIGINT-vendor', 'SIGINT-ros2_canopen', 'SIGINT-sdo_only'])
+def test_a_signal_quick_stops_an_enabled_drive_before_the_node_exits(rig, signum, layout):
     # The robot program keeps streaming targets through the signal, as a controller does.
-    axis = rig('-p', 'drives.command_timeout:=0.0')
+    axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos(layout))
     axis.enable_moving()
     before = axis.recorder.mark()
     signalled = stop_with(axis, signum)
@@ -481,13 +491,14 @@ def consumer_write(message) -> bool:
     return expedited_download(message) == (CONSUMER_HEARTBEAT, 1, OWN_ID << 16 | CONSUMER_MS)
 
 
-def test_the_drive_watches_the_gateway_and_stops_by_itself_when_it_is_killed(rig):
+@pytest.mark.parametrize('layout', LAYOUTS)
+def test_the_drive_watches_the_gateway_and_stops_by_itself_when_it_is_killed(rig, layout):
     # Beats a second apart: a consumer watches from the first beat it hears, so the gateway
     # sends one right after each write of 0x1016:1, and a kill right after the enable, before
     # the next beat on the grid, still stops the drive.
     axis = rig('-p', f'heartbeat.node_id:={OWN_ID}', '-p', 'heartbeat.period:=1.0',
                '-p', f'drives.consumer_time:={CONSUMER_MS / 1000}',
-               '-p', 'drives.command_timeout:=0.0')
+               '-p', 'drives.command_timeout:=0.0', pdos=layout_pdos(layout))
     axis.wait_state('SWITCH_ON_DISABLED')
     axis.recorder.first(consumer_write, 'the consumer heartbeat written to 0x1016:1')
     entry = struct.pack('<I', OWN_ID << 16 | CONSUMER_MS)

@@ -43,15 +43,20 @@ PDOS = default_drive_pdos()  # the simulated drive's own, as make run has them
 class Rig:
     """A gateway, its drive, and a robot program's view: topics, services, the action."""
 
-    def __init__(self, start_durand, pdos=PDOS, **parameters):
+    def __init__(self, start_durand, pdos=PDOS, before_gateway=None, **parameters):
         channel = new_channel()
         self.drive = start_durand(NODE, kind=DurandDrive, channel=channel, pdos=pdos)
         wait_until(lambda: self.drive.running, WAIT, 'the drive receiving')
+        if before_gateway is not None:
+            before_gateway(self.drive)
+        # The drive watches the gateway's heartbeat (as by default), with a consumer time
+        # that a busy test machine's pauses do not reach.
         self.gateway = Harness({'can.channel': channel, 'simulation.devices': None,
                                 'drives.nodes': [NODE], f'node_{NODE}.joint': JOINT,
                                 f'node_{NODE}.position_scale': SCALE,
                                 f'node_{NODE}.velocity_scale': SCALE,
-                                'drives.command_timeout': 0.0, **parameters})
+                                'drives.command_timeout': 0.0, 'drives.consumer_time': 3.0,
+                                **parameters})
         node = self.gateway.client_node
         self._lock = threading.Lock()
         self.states, self.joint_states = [], []

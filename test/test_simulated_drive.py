@@ -157,7 +157,7 @@ class Axis:
 def test_boots_to_switch_on_disabled(axis):
     assert axis.get('statusword') == REMOTE | 0x40
     assert axis.drive.drive_state == 'SWITCH_ON_DISABLED'
-    assert axis.get('supported_modes') == 0b11_1010_0101  # PP, PV, homing, CSP, CSV, CST
+    assert axis.get('supported_modes') == 0b11_1010_1101  # PP, PV, PT, homing, CSP, CSV, CST
     assert axis.gateway.call('sdo_read', node_id=axis.node_id, index=0x1000,
                              subindex=0).data.tobytes() == bytes.fromhex('92010200')
 

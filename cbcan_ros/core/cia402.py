@@ -36,7 +36,7 @@ FORMATS = {
     POSITION_ACTUAL: '<i', VELOCITY_ACTUAL: '<i', TARGET_TORQUE: '<h', TORQUE_ACTUAL: '<h',
     TARGET_POSITION: '<i', PROFILE_VELOCITY_OBJECT: '<I', TARGET_VELOCITY: '<i',
     SUPPORTED_MODES: '<I', CONSUMER_HEARTBEAT: '<I', POSITION_WINDOW: '<I',
-    HOME_OFFSET: '<i', HOMING_METHOD: '<b',
+    HOME_OFFSET: '<i', HOMING_METHOD: '<b', ABORT_CONNECTION_OPTION: '<h',
 }
 
 # States: (statusword mask, value), checked in this order.
@@ -100,8 +100,12 @@ TARGET_OF_MODE = {
     PROFILE_TORQUE: TARGET_TORQUE, CYCLIC_TORQUE: TARGET_TORQUE,
 }
 # Modes whose target is streamed: the command timeout halts them when it stops coming.
-STREAMING_MODES = frozenset({PROFILE_VELOCITY, CYCLIC_POSITION, CYCLIC_VELOCITY,
-                             CYCLIC_TORQUE})
+STREAMING_MODES = frozenset({PROFILE_VELOCITY, PROFILE_TORQUE, CYCLIC_POSITION,
+                             CYCLIC_VELOCITY, CYCLIC_TORQUE})
+# Modes where several vendors ignore the halt bit (their manuals: "no function" there): the
+# command timeout also sets the target that stops the axis (position: where it stands).
+HALT_BY_TARGET = {CYCLIC_POSITION: TARGET_POSITION, CYCLIC_VELOCITY: TARGET_VELOCITY,
+                  CYCLIC_TORQUE: TARGET_TORQUE, PROFILE_TORQUE: TARGET_TORQUE}
 
 # Error codes (0x603F, EMCY) of CiA 402-2 and CiA 301, the ones drives commonly report; other
 # codes are named by their CiA 301 class.

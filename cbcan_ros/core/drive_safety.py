@@ -4,7 +4,8 @@
   every powered drive, so it takes effect at once whatever the PDOs' transmission types;
   called while the gateway shuts down or a managed node is deactivated, before the bus closes.
 - :func:`halt_if_timed_out`: a drive in a streaming mode without a new target for
-  ``drives.command_timeout`` is halted (controlword bit 8): it decelerates and holds.
+  ``drives.command_timeout`` is halted (controlword bit 8): it decelerates and holds; in the
+  cyclic modes and profile torque its target is set to stop it too (``HALT_BY_TARGET``).
 - :func:`stop_unattended`: a drive found running when it is heard (again) is quick-stopped.
 - :func:`watch_the_gateway`: the drive's heartbeat consumer (0x1016:1) set to the gateway's
   heartbeat, so that the drive's own 0x6007 reaction stops it when the gateway, its computer
@@ -26,6 +27,9 @@ LOGGER = logging.getLogger(__name__)
 
 ON_SHUTDOWN = {'quick_stop': cia402.QUICK_STOP, 'disable': cia402.DISABLE_VOLTAGE,
                'none': None}
+# drives.abort_connection: the 0x6007 codes of CiA 402; 0 (no reaction) is never written.
+ABORT_CONNECTION = {'quick_stop': 3, 'disable': 2, 'fault': 1, 'none': 0}
+NO_REACTION = 0
 # How long shutdown waits for the drives to confirm its stop commands.
 SHUTDOWN_WAIT = 0.5
 CONSUMER_TIMEOUT = 2.0
@@ -119,7 +123,7 @@ async def secure_heard_drive(drive: DriveRecord, lock, sdo_batch, settings: Driv
                 LOGGER.warning('drive %d: its statusword after the quick stop could not be '
                                'read; it is shown as read before until its next one',
                                drive.node_id)
-        await watch_the_gateway(sdo_batch, drive.node_id, settings, beat_now)
+        await watch_the_gateway(sdo_batch, drive, lock, settings, beat_now)
     except Exception as error:  # noqa: BLE001 - the drive is read; say what failed
         LOGGER.error('drive %d: its re-read could not finish (%r)', drive.node_id, error)
 
@@ -143,7 +147,12 @@ def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
             drive.controlword |= cia402.HALT
             drive.status = replace(status, halted=True)
             word, count = drive.controlword, drive.timeouts
-        drive.objects.write({cia402.CONTROLWORD: word}, HALT_TIMEOUT)
+            values = {cia402.CONTROLWORD: word}
+            if status.mode in cia402.HALT_BY_TARGET:
+                index = cia402.HALT_BY_TARGET[status.mode]
+                values = {index: status.position if index == cia402.TARGET_POSITION else 0,
+                          **values}
+        drive.objects.write(values, HALT_TIMEOUT)
     # One line per drive; later halts are counted (diagnostics), not logged again.
     (LOGGER.warning if count == 1 else LOGGER.debug)(
         'drive %d: no target for %.3f s (drives.command_timeout): halted; the next target '
@@ -151,23 +160,55 @@ def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
     return True
 
 
-async def watch_the_gateway(sdo_batch, node_id: int, settings: DriveSettings,
+async def watch_the_gateway(sdo_batch, drive: DriveRecord, lock, settings: DriveSettings,
                             beat_now: Callable[[], None]) -> None:
-    """Tell drive ``node_id`` to watch the gateway's heartbeat (0x1016:1), when configured.
+    """Have ``drive`` stop by itself when the gateway dies: 0x1016:1, then 0x6007.
 
-    A beat follows the write at once: a consumer watches from the first beat it hears, and a
-    drive enabled before the next beat on the grid would run on if the gateway died then.
+    A beat follows the consumer's write at once: a consumer watches from the first beat it
+    hears, and a drive enabled before the next beat on the grid would run on if the gateway
+    died then. A drive whose 0x6007 is 0 would take no action on the loss: it is set to
+    ``settings.abort_connection``, or, with that 0, ``drive.unwatched`` refuses enable.
     """
-    if not (settings.consumer_time and settings.heartbeat_node_id):
+    node_id = drive.node_id
+    if settings.abort_connection is None:
         return
     entry = (settings.heartbeat_node_id << 16) | round(settings.consumer_time * 1000)
     written = await asyncio.wrap_future(sdo_batch(
         [Access(node_id, cia402.CONSUMER_HEARTBEAT, 1, True, struct.pack('<I', entry))],
         CONSUMER_TIMEOUT))
-    if written[0].success:
-        beat_now()
-        LOGGER.info('drive %d watches the gateway heartbeat (0x1016:1 = 0x%08X): it stops by '
-                    'itself after %.3f s without it', node_id, entry, settings.consumer_time)
-    else:
+    if not written[0].success:
         LOGGER.warning('drive %d: its heartbeat consumer (0x1016:1) was not set: %s; it will '
                        'not stop by itself if the gateway dies', node_id, written[0].message)
+        return
+    beat_now()
+    reaction, unwatched = await _abort_connection(sdo_batch, node_id, settings)
+    with lock:
+        drive.unwatched = unwatched
+    if unwatched:
+        LOGGER.warning('drive %d: %s; enable is refused', node_id, unwatched)
+        return
+    LOGGER.info('drive %d stops by itself %.3f s after the gateway heartbeat (node %d) ends: '
+                '0x1016:1 = 0x%08X, 0x6007 = %s', node_id, settings.consumer_time,
+                settings.heartbeat_node_id, entry, reaction)
+
+
+async def _abort_connection(sdo_batch, node_id: int, settings: DriveSettings):
+    """Read 0x6007, set it when it is 0; return (its reaction in words, why unwatched or '')."""
+    read = await asyncio.wrap_future(sdo_batch(
+        [Access(node_id, cia402.ABORT_CONNECTION_OPTION, 0)], CONSUMER_TIMEOUT))
+    if not read[0].success:
+        # A drive without 0x6007 reacts as its vendor decided (most: fault).
+        return f'not readable ({read[0].message}): its own reaction', ''
+    code = struct.unpack('<h', bytes(read[0].data[:2]).ljust(2, b'\0'))[0]
+    if code != NO_REACTION:
+        return f'{code}', ''
+    if not settings.abort_connection:
+        return '0', ('its abort connection option (0x6007) is 0: it would run on if the '
+                     'gateway died; set drives.abort_connection, or write 0x6007')
+    set_to = await asyncio.wrap_future(sdo_batch(
+        [Access(node_id, cia402.ABORT_CONNECTION_OPTION, 0, True,
+                struct.pack('<h', settings.abort_connection))], CONSUMER_TIMEOUT))
+    if not set_to[0].success:
+        return '0', (f'its abort connection option (0x6007) is 0 (it would run on if the '
+                     f'gateway died) and could not be set: {set_to[0].message}')
+    return f'{settings.abort_connection} (set from 0 by drives.abort_connection)', ''

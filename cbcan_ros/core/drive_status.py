@@ -21,6 +21,9 @@ class DriveSettings:
     on_shutdown: str = 'quick_stop'
     consumer_time: float = 0.0  # s; with heartbeat_node_id, written to each drive's 0x1016
     heartbeat_node_id: int = 0
+    # 0x6007 written to a drive that has 0 there (no reaction to a lost heartbeat); 0 = not
+    # written, enable refused instead; None = the drives do not watch the gateway.
+    abort_connection: Optional[int] = None
     feedback_period: float = 0.02  # s between feedback cycles (the SYNC period with SYNC)
 
 
@@ -99,6 +102,7 @@ class DriveRecord:
     emcy_code: int = 0  # the error code of the last EMCY
     lost_powered: bool = False  # its heartbeat stopped while its power stage was on
     position_window: Optional[int] = None  # 0x6067 in drive units, once read (drive_arrival)
+    unwatched: str = ''  # why it would run on if the gateway died (enable refused), or ''
     waiters: List[Callable[[], None]] = field(default_factory=list)
     # Held from deciding what to send (a target, a halt, a stop, a step) until it is handed
     # to the bus: the drive gets frames in the order they were decided. Taken before the

@@ -106,7 +106,9 @@ class NodeParameters:
                       '= id << 16 | time in ms) and stop by themselves when it falls silent. '
                       'It says OPERATIONAL while the gateway serves, PRE_OPERATIONAL while a '
                       'managed node is inactive, and stops at shutdown. No device may use '
-                      "this id. 0 = no heartbeat. Object 0x1017 of node 0 (the gateway's own "
+                      'this id. 0 = none, unless drives.nodes has drives that watch it '
+                      '(drives.keep_running_if_gateway_dies false): then 127, or the highest '
+                      "id no device parameter lists. Object 0x1017 of node 0 (the gateway's own "
                       'dictionary) shows heartbeat.period in ms and only informs: writing it '
                       'does not change the heartbeat',
                       integer_range=[IntegerRange(from_value=0, to_value=127, step=0)])
@@ -194,15 +196,16 @@ class NodeParameters:
         simulated_drives = self.node_ids('simulation.drives')
         checks.check_simulated(simulated, simulated_drives)
         pdo_nodes = self.node_ids('pdo.nodes')
+        listed = {'nodes': expected, 'node_guarding': guarded, 'pdo.nodes': pdo_nodes,
+                  'simulation.devices': simulated, 'simulation.drives': simulated_drives,
+                  'drives.nodes': self.node_ids('drives.nodes')}
+        checks.check_own_node_id(value('heartbeat.node_id'), listed)
+        own_id = drive_parameters.own_node_id(value, listed)
         drives = drive_parameters.settings(
-            value, self.node_ids('drives.nodes'), value('heartbeat.node_id'),
+            value, self.node_ids('drives.nodes'), own_id,
             value('heartbeat.period'), value('sync.period'))
         self.joints()
         checks.check_sync(value('sync.period'), value('sync.counter_overflow'))
-        checks.check_own_node_id(value('heartbeat.node_id'), {
-            'nodes': expected, 'node_guarding': guarded, 'pdo.nodes': pdo_nodes,
-            'simulation.devices': simulated, 'simulation.drives': simulated_drives,
-            'drives.nodes': list(drives.node_ids)})
         checks.check_file('simulation.eds', value('simulation.eds'))
         if value('simulation.drive_layout') not in LAYOUTS:
             raise checks.ConfigurationError(
@@ -242,7 +245,7 @@ class NodeParameters:
                           if value(device_file_parameter(node_id))},
             sync_period=value('sync.period'),
             sync_counter_overflow=value('sync.counter_overflow'),
-            heartbeat_node_id=value('heartbeat.node_id'),
+            heartbeat_node_id=own_id,
             heartbeat_period=value('heartbeat.period'),
             drives=drives,
             raw=raw_parameters.settings(self._strings))

@@ -13,7 +13,7 @@ from typing import Callable, Dict, List
 from rcl_interfaces.msg import FloatingPointRange
 
 from ..core import cia402
-from ..core.drive_safety import ON_SHUTDOWN
+from ..core.drive_safety import ABORT_CONNECTION, ON_SHUTDOWN
 from ..core.drive_status import DriveSettings
 from .parameter_checks import ConfigurationError
 
@@ -83,13 +83,24 @@ def declare(declare_parameter: Callable, drive_ids: List[int]) -> None:
                       'quick_stop (ramp down, per its 0x605A), disable (power stage off at '
                       'once: the motor coasts unless it has a brake) or none',
                       additional_constraints='quick_stop, disable or none')
-    declare_parameter('drives.consumer_time', 0.0,
+    declare_parameter('drives.consumer_time', 0.5,
                       'Seconds after which each drive stops by itself (its own 0x6007 '
                       'reaction) when it no longer hears the gateway heartbeat: written to '
-                      "the drive's 0x1016:1 when it is first heard and after every boot. "
-                      'Needs heartbeat.node_id; a few heartbeat.period long. 0 = the drive '
-                      'is left as it is',
+                      "the drive's 0x1016:1 when it is first heard and after every boot; "
+                      'a few heartbeat.period long',
                       floating_point_range=_between(0.0, 60.0))
+    declare_parameter('drives.keep_running_if_gateway_dies', False,
+                      'true gives up the drives stopping by themselves when the gateway, its '
+                      'computer or the bus dies: no heartbeat consumer (0x1016) and no abort '
+                      'connection option (0x6007) is written, and no heartbeat is sent for '
+                      'them. Only for drives another safety chain stops')
+    declare_parameter('drives.abort_connection', 'quick_stop',
+                      'What a drive whose abort connection option (0x6007) is 0 (no '
+                      'reaction: it runs on when it loses the gateway) is set to when it is '
+                      'first heard and after every boot: quick_stop (3), disable (2, power '
+                      'stage off), fault (1); or none: 0x6007 is left at 0 and enable is '
+                      'refused, saying why',
+                      additional_constraints='quick_stop, disable, fault or none')
     for node_id in drive_ids:
         declare_parameter(f'node_{node_id}.joint', f'node_{node_id}',
                           f'Name of drive {node_id} as a joint in ~/joint_states and '
@@ -111,21 +122,44 @@ def settings(value: Callable, drive_ids: List[int], heartbeat_node_id: int,
     if on_shutdown not in ON_SHUTDOWN:
         raise ConfigurationError('drives.on_shutdown', on_shutdown, 'is no stop the gateway '
                                  'knows', ', '.join(ON_SHUTDOWN))
-    consumer_time = value('drives.consumer_time')
-    if consumer_time and not heartbeat_node_id:
-        raise ConfigurationError('drives.consumer_time', consumer_time, 'needs the gateway '
-                                 'to send a heartbeat, but heartbeat.node_id is 0',
-                                 '0, or set heartbeat.node_id')
-    if consumer_time and consumer_time <= heartbeat_period:
+    abort_connection = value('drives.abort_connection')
+    if abort_connection not in ABORT_CONNECTION:
+        raise ConfigurationError('drives.abort_connection', abort_connection, 'is no reaction '
+                                 'the gateway knows', ', '.join(ABORT_CONNECTION))
+    unwatched = value('drives.keep_running_if_gateway_dies')
+    consumer_time = 0.0 if unwatched else value('drives.consumer_time')
+    if drive_ids and not unwatched and not consumer_time:
+        raise ConfigurationError('drives.consumer_time', consumer_time, 'turns off the '
+                                 'drives stopping by themselves when the gateway dies',
+                                 'more than heartbeat.period; or give that up with '
+                                 'drives.keep_running_if_gateway_dies: true')
+    if drive_ids and consumer_time and consumer_time <= heartbeat_period:
         raise ConfigurationError('drives.consumer_time', consumer_time, 'is not longer than '
                                  f'heartbeat.period ({heartbeat_period}): the drives would '
                                  'stop between two heartbeats',
                                  f'more than {heartbeat_period}, best 3 periods or more')
     return DriveSettings(node_ids=tuple(drive_ids),
                          command_timeout=value('drives.command_timeout'),
-                         on_shutdown=on_shutdown, consumer_time=consumer_time,
+                         on_shutdown=on_shutdown,
+                         consumer_time=consumer_time if drive_ids else 0.0,
                          heartbeat_node_id=heartbeat_node_id if drive_ids else 0,
+                         abort_connection=(None if unwatched
+                                           else ABORT_CONNECTION[abort_connection]),
                          feedback_period=sync_period or FEEDBACK_PERIOD)
+
+
+def own_node_id(value: Callable, listed: Dict[str, List[int]]) -> int:
+    """Return the gateway's heartbeat node id: ``heartbeat.node_id``, else one for the drives.
+
+    Drives that watch the gateway (``drives.keep_running_if_gateway_dies`` false) need its
+    heartbeat: without ``heartbeat.node_id`` it beats as 127, or the highest id no device
+    parameter in ``listed`` uses.
+    """
+    given = value('heartbeat.node_id')
+    if given or not listed['drives.nodes'] or value('drives.keep_running_if_gateway_dies'):
+        return given
+    used = {node_id for node_ids in listed.values() for node_id in node_ids}
+    return next(node_id for node_id in range(127, 0, -1) if node_id not in used)
 
 
 def joints(value: Callable, drive_ids: List[int]) -> Dict[int, Joint]:

@@ -88,10 +88,14 @@ class DurandDrive(DurandDevice):
     :class:`DurandDevice`. :attr:`state` stays the NMT state, as on every simulated device;
     :attr:`drive_state` is the CiA 402 state's name. :attr:`cyclic_target_reached` False
     makes it a drive that never sets statusword bit 10 in the cyclic modes, where CiA 402
-    leaves that bit to the vendor.
+    leaves that bit to the vendor; :attr:`halts_in_cyclic_modes` False one that ignores the
+    halt bit there.
     """
 
     cyclic_target_reached = True
+    # False: a drive that ignores the halt bit in the cyclic modes, as several vendors' do
+    # (their manuals say bit 8 has no function there).
+    halts_in_cyclic_modes = True
 
     def __init__(self, node_id: int, modes=cia402.ALL_MODES, tick: float = 0.01,
                  **device_options):
@@ -347,7 +351,8 @@ class DurandDrive(DurandDevice):
     @property
     def _halted(self) -> bool:
         return (self._drive_state is State.OPERATION_ENABLED
-                and bool(self._controlword & cia402.HALT))
+                and bool(self._controlword & cia402.HALT)
+                and (self.halts_in_cyclic_modes or self._read(MODE) not in cia402.CYCLIC_MODES))
 
     def _move(self, elapsed: float) -> None:
         mode = self._read(MODE)
@@ -358,7 +363,7 @@ class DurandDrive(DurandDevice):
             self._ramp(self._read(TARGET_VELOCITY), self._read(PROFILE_ACCELERATION), elapsed)
         elif mode == cia402.CYCLIC_VELOCITY:
             self._ramp(self._read(TARGET_VELOCITY), 0, elapsed)
-        elif mode == cia402.CYCLIC_TORQUE:
+        elif mode in cia402.TORQUE_MODES:
             self._torque = self._read(TARGET_TORQUE)
             self._ramp(self._torque * VELOCITY_PER_TORQUE, 0, elapsed)
         elif mode == cia402.CYCLIC_POSITION:
@@ -443,6 +448,8 @@ class DurandDrive(DurandDevice):
             return self._velocity == self._read(TARGET_VELOCITY), following
         if mode == cia402.CYCLIC_TORQUE:
             return self._torque == self._read(TARGET_TORQUE), following
+        if mode == cia402.PROFILE_TORQUE:
+            return self._torque == self._read(TARGET_TORQUE), 0
         return False, 0
 
 

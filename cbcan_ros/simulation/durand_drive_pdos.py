@@ -33,6 +33,7 @@ from .durand_drive_objects import (
     VELOCITY_ACTUAL,
 )
 from .durand_pdos import PdoConfig
+from .simulated_drives import LAYOUTS
 
 # Transmission types (CiA 301). durand sends a TPDO of type 255 on every write of a mapped
 # object (the drive writes its objects only when they change) and one of type 254 only from its
@@ -107,3 +108,8 @@ def _unused(numbers) -> Tuple[PdoConfig, ...]:
     return tuple(PdoConfig(kind, number, (), enabled=False)
                  for kind in ('tpdo', 'rpdo') for number in numbers)
 
+
+
+def drive_pdos(layout: str) -> Tuple[PdoConfig, ...]:
+    """Return the PDOs of ``layout``, a name in ``simulated_drives.LAYOUTS``."""
+    return globals()[LAYOUTS[layout]]()

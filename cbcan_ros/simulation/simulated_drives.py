@@ -24,14 +24,13 @@ def simulated_drives(node_ids: List[int], warn: Callable[[str], None],
     ``warn`` says so and none is returned.
     """
     try:
-        from . import durand_drive_pdos
         from .durand_drive import DurandDrive
+        from .durand_drive_pdos import drive_pdos
     except ModuleNotFoundError as error:
         if error.name != 'durand':
             raise
         warn(f'parameter simulation.drives: drives {node_ids} are not simulated: they need '
              f'the Python package durand (pip install durand==0.5.0)')
         return []
-    pdos = getattr(durand_drive_pdos, LAYOUTS[layout])
-    return [DurandDrive(node_id, pdos=pdos(), **bus_options)
+    return [DurandDrive(node_id, pdos=drive_pdos(layout), **bus_options)
             for node_id in node_ids]
