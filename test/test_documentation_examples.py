@@ -12,8 +12,7 @@ Each fenced block of every page is one of:
   (it refuses a name it does not declare), and the one naming node 5's EDS is given to that
   gateway; the diagnostic_aggregator configuration must name the status items the gateway
   publishes;
-- listed in ``NOT_RUN`` with the reason it cannot run here (the PDO worked example for a
-  drive also runs with the objects of ``make run``'s node 5 in the drive's place).
+- listed in ``NOT_RUN`` with the reason it cannot run here.
 A block that is none of these fails the test, so a new block is run or listed. Every Python
 block, run or not, is complete as printed: ruff finds no undefined name in it. Every
 ``cbcan_cli`` command of a shell block, run or not, is a command line ``cbcan_cli`` takes (or
@@ -86,13 +85,13 @@ NOT_RUN = {
                                                    'test_lss_process runs these steps',
     'cbcan_cli lss-inquire 0x319': 'a device with LSS at that identity: test_lss_process runs '
                                    'these steps',
-    'node_5: {eds: /robot/eds/drive.eds}': 'a CiA 402 drive and its EDS (test_pdo_topics runs '
+    'node_6: {eds: /robot/eds/drive.eds}': 'a CiA 402 drive and its EDS (test_pdo_topics runs '
                                            'the same PDO and SYNC flow against durand)',
-    'cbcan_cli pdo-write 5 1 Controlword=15': 'a CiA 402 drive as node 5 (test_pdo_cli runs '
-                                              'pdo-echo and pdo-write against durand)',
-    'def on_drive(message):': 'a CiA 402 drive as node 5: '
-                              'test_pdo_worked_example_runs_with_the_simulated_objects runs it '
-                              "with the objects of make run's node 5 in the drive's place",
+    'def on_drive(message):': 'runs until Ctrl-C: test_pdo_worked_example_runs_as_printed_'
+                              'against_the_simulated_drive runs it as printed and stops it',
+    'cbcan_cli pdo-write 6 1 Controlword=6': 'names from the EDS of a real drive, which make '
+                                             "run's node 6 has not (test_pdo_cli runs "
+                                             'pdo-echo and pdo-write against durand)',
     'cbcan_cli drive 7 enable --mode pp': 'the positions a move prints on the way vary from '
                                           'run to run: test_drive_cli runs these commands '
                                           'against a simulated drive',
@@ -416,36 +415,24 @@ def test_diagnostic_aggregator_example_names_what_the_gateway_publishes(gateway,
                                          f'cbcan_node output:\n{gateway[0].output()}')
 
 
-# The PDO worked example's drive objects, and the objects of make run's simulated node 5 that
-# take their place: TPDO 1 maps 0x2001 and 0x2003, RPDO 1 0x2000 and 0x2001.
-# The target the example sends becomes a value no other block writes to node 5's 0x2001 (the
-# README's pdo-write of 300 ran first once, and its echo passed for the example's own).
-SENT = 1717
-DRIVE_OBJECTS = {'0x6041': '0x2001', '0x6064': '0x2003', '0x6040': '0x2000', '0x607A': '0x2001',
-                 'value=20000.0': f'value={SENT}.0'}
-
-
-def test_pdo_worked_example_runs_with_the_simulated_objects(gateway, cli_client, tmp_path):
-    """The example receives TPDO 1, sends RPDO 1 (seen back in TPDO 1) and stops on Ctrl-C."""
+def test_pdo_worked_example_runs_as_printed_against_the_simulated_drive(gateway, cli_client,
+                                                                        tmp_path):
+    """The example receives TPDOs 1 and 2 of node 6, sends RPDO 1, and stops on Ctrl-C."""
     blocks = [block for block in all_blocks() if 'def on_drive(message):' in block.text]
     assert len(blocks) == 1, [str(block) for block in blocks]
-    text = blocks[0].text
-    for drive, simulated in DRIVE_OBJECTS.items():
-        assert drive in text, f'{blocks[0]}: no {drive}'
-        text = text.replace(drive, simulated)
-    assert run(cli_client, build_parser().parse_args(['nmt', '5', 'start'])) == 0
+    assert run(cli_client, build_parser().parse_args(['nmt', '6', 'start'])) == 0
     script = tmp_path / 'pdo_example.py'
-    script.write_text(text)
+    script.write_text(blocks[0].text)
     process = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
                                stderr=subprocess.STDOUT, text=True, cwd=tmp_path)
     printed: List[str] = []
     reader = threading.Thread(target=lambda: printed.extend(process.stdout), daemon=True)
     reader.start()
     try:
-        # 0x2001, written through RPDO 1, comes back in TPDO 1 as the "statusword".
-        wait_until(lambda: any(f'statusword 0x{SENT:04X}, position -2' in line
-                               for line in printed),
-                   SCRIPT_TIMEOUT, f'{blocks[0]} to print the value it sent; printed: {printed}')
+        # The controlword it sent (shutdown) shows in the statusword: ready to switch on.
+        wait_until(lambda: any('statusword 0x0231, position' in line for line in printed),
+                   SCRIPT_TIMEOUT, f'{blocks[0]} to print the state it sent the drive to; '
+                                   f'printed: {printed}')
         process.send_signal(signal.SIGINT)
         assert process.wait(SCRIPT_TIMEOUT) == 0, ''.join(printed)
     finally:
