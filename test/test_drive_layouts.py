@@ -19,14 +19,17 @@ from test_drives import CSP, CST, CSV, HOMING, NODE, PP, PV, SCALE, WAIT, watch
 
 from cbcan_ros.action import DriveMove
 from cbcan_ros.core import cia402
+from cbcan_ros.core.nmt import OPERATIONAL
 from cbcan_ros.simulation.durand_drive_objects import HOME_OFFSET, TARGET_POSITION
 from cbcan_ros.simulation.durand_drive_pdos import drive_pdos as layout_pdos
 from cbcan_ros.simulation.simulated_drives import LAYOUTS
 
 from conftest import wait_for_future, wait_until
+from node_process import ROOT
 
 rig = test_drives.rig  # a gateway with one simulated drive (a fixture)
 PT = 4  # profile torque
+EXAMPLE_EDS = ROOT / 'config' / 'cia402_drive.eds'  # the vendor layout
 
 # The mapping of each RPDO (COB-ID 0x200 + 0x100 * (n - 1) + node) in a layout.
 RPDO_COB_IDS = {1: 0x200, 2: 0x300, 3: 0x400, 4: 0x500}
@@ -225,3 +228,35 @@ def test_the_command_timeout_stops_a_drive_that_ignores_the_halt_bit(rig, mode, 
     wait_until(lambda: axis.states[-1].halted, WAIT, 'drive_state halted')
     wait_until(lambda: axis.drive.velocity == 0 and axis.drive.torque == 0, WAIT,
                'the drive stopped by its target though it ignores the halt bit')
+
+
+def test_a_drive_reset_to_its_factory_pdos_is_configured_from_its_eds_and_moves(rig):
+    # The drive's own mapping has no PDO at all; the EDS of config/ maps the vendor layout,
+    # written at every boot (pdo.configure).
+    axis = rig(pdos=layout_pdos('sdo_only'), **{'pdo.configure': True,
+                                                f'node_{NODE}.eds': str(EXAMPLE_EDS)})
+    gateway = axis.gateway.node.gateway
+    assert axis.gateway.call('nmt_command', node_id=NODE, command=129).success  # reset node
+
+    def vendor_layout_read():
+        rpdos = gateway.pdo.mappings(NODE)[1]
+        return 3 in rpdos and rpdos[3].enabled and [
+            entry.index for entry in rpdos[3].entries] == [cia402.CONTROLWORD, TARGET_POSITION]
+    wait_until(vendor_layout_read, WAIT, "the EDS's RPDO 3 (controlword, target) read back")
+    assert axis.gateway.call('nmt_command', node_id=NODE, command=1).success
+    wait_until(lambda: axis.latest_state() == 'SWITCH_ON_DISABLED'
+               and gateway.monitor.status(NODE).state == OPERATIONAL, WAIT,
+               'the drive read again, heard OPERATIONAL: its PDOs are used')
+    axis.enable(PP)
+    start = axis.drive.position
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        result = move(axis, start / SCALE + 2.0)
+        assert result.result.success, result.result.message
+        watch(bus, frames, lambda seen: set_points_taken(writes_on_the_bus(seen, 'vendor')),
+              'the set-point on the bus')
+    finally:
+        bus.shutdown()
+    assert axis.drive.position == start + 2000
+    assert set_points_taken(writes_on_the_bus(frames, 'vendor')) == [start + 2000]
+    assert any(m.arbitration_id == 0x400 + NODE for m in frames), 'no RPDO 3 sent'
