@@ -20,7 +20,12 @@ from test_drives import CSP, CST, CSV, HOMING, NODE, PP, PV, SCALE, WAIT, watch
 from cbcan_ros.action import DriveMove
 from cbcan_ros.core import cia402
 from cbcan_ros.core.nmt import OPERATIONAL
-from cbcan_ros.simulation.durand_drive_objects import HOME_OFFSET, TARGET_POSITION
+from cbcan_ros.simulation.durand_drive_objects import (
+    HOME_OFFSET,
+    PROFILE_VELOCITY,
+    SOFTWARE_POSITION_LIMIT,
+    TARGET_POSITION,
+)
 from cbcan_ros.simulation.durand_drive_pdos import drive_pdos as layout_pdos
 from cbcan_ros.simulation.simulated_drives import LAYOUTS
 
@@ -260,3 +265,43 @@ def test_a_drive_reset_to_its_factory_pdos_is_configured_from_its_eds_and_moves(
     assert axis.drive.position == start + 2000
     assert set_points_taken(writes_on_the_bus(frames, 'vendor')) == [start + 2000]
     assert any(m.arbitration_id == 0x400 + NODE for m in frames), 'no RPDO 3 sent'
+
+
+def test_a_move_outside_the_software_position_limits_is_refused_before_anything_is_sent(rig):
+    axis = rig()
+    axis.drive.set_value(SOFTWARE_POSITION_LIMIT, 1, struct.pack('<i', -5000))
+    axis.drive.set_value(SOFTWARE_POSITION_LIMIT, 2, struct.pack('<i', 5000))
+    axis.enable(CSV)  # a move would change the mode to PP first
+    result = move(axis, 6.0).result
+    assert not result.success
+    assert 'target 6000 is outside its software position limits -5000..5000' in result.message
+    assert 'nothing was sent' in result.message
+    assert axis.drive.value(0x6060, 0) == struct.pack('<b', CSV)
+    assert move(axis, 4.0).result.success
+
+
+def test_a_move_that_does_not_arrive_in_time_halts_the_drive_and_says_where(rig):
+    axis = rig()
+    axis.enable(PP)
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    goal = wait_for_future(axis.mover.send_goal_async(DriveMove.Goal(
+        node_id=NODE, position=100.0, velocity=1.0, timeout=0.5)), WAIT)
+    result = wait_for_future(goal.get_result_async(), WAIT).result
+    assert not result.success
+    assert result.message.startswith('timed out after 0.5 s'), result.message
+    assert 'halted at position' in result.message, result.message
+    assert axis.drive.velocity == 0 and axis.drive.statusword & 0x100
+    assert 0 < axis.drive.position < 100_000
+
+
+def test_a_move_with_velocity_0_uses_the_drives_configured_profile_velocity(rig):
+    axis = rig()
+    configured = axis.drive.value(PROFILE_VELOCITY, 0)
+    axis.enable(PP)
+    assert move(axis, 1.0).result.success  # at 20 rad/s
+    assert axis.drive.value(PROFILE_VELOCITY, 0) == struct.pack('<I', 20_000)
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    goal = wait_for_future(axis.mover.send_goal_async(DriveMove.Goal(
+        node_id=NODE, position=0.5)), WAIT)
+    assert wait_for_future(goal.get_result_async(), WAIT).result.success
+    assert axis.drive.value(PROFILE_VELOCITY, 0) == configured

@@ -57,6 +57,7 @@ LOGGER = logging.getLogger(__name__)
 # A command's time unless its caller says: a transition takes ms, homing as long as it travels.
 DEFAULT_TIMEOUT = 2.0
 HOMING_TIMEOUT = 60.0
+MOVE_TIMEOUT = 60.0
 # A drive's initial read that failed is tried again on a later heartbeat, at most this often.
 REREAD_INTERVAL = 1.0
 
@@ -176,20 +177,22 @@ class DriveService:
         return self._submit(drive, self._commands.run(drive, command, mode, limit, reads))
 
     def move(self, node_id: int, position: int, relative: bool = False, velocity: int = 0,
-             on_feedback: Optional[Callable[[DriveStatus], None]] = None
-             ) -> Tuple['Future[DriveResult]', Callable[[], None]]:
+             on_feedback: Optional[Callable[[DriveStatus], None]] = None,
+             timeout: float = 0.0) -> Tuple['Future[DriveResult]', Callable[[], None]]:
         """Move drive ``node_id`` in profile position; return (result future, cancel()).
 
-        Succeeds on the drive's target reached at the goal; ``cancel()`` halts the drive and
-        answers where it stopped. A new move or target for the drive replaces this one.
+        Succeeds on the drive's target reached within its position window of the goal
+        (``drive_arrival``); ``cancel()`` and ``timeout`` (s, 0 = 60 s) halt the drive and
+        answer where it stopped. A new move or target for the drive replaces this one.
         """
         reads = self._reads(node_id)
         refused = self._checks.move(node_id, position, velocity)
         if refused:
             return resolved(refused), lambda: None
         drive, token = self._drives[node_id], object()
-        future = self._submit(drive, self._commands.move(drive, position, relative, velocity,
-                                                         on_feedback, token, reads))
+        future = self._submit(drive, self._commands.move(
+            drive, position, relative, velocity, on_feedback, token, reads,
+            timeout or MOVE_TIMEOUT))
         return future, lambda: self._runner.call_soon(
             lambda: self._commands.cancel(drive, 'cancelled', halt=True, token=token))
 
@@ -444,6 +447,7 @@ class DriveService:
             drive.read_failed_at = time.monotonic()
             drive.objects.know_commanded(values)
             drive.controlword = values.get(cia402.CONTROLWORD, 0)
+            drive.profile_velocity = values.get(cia402.PROFILE_VELOCITY_OBJECT, 0)
             drive.status = replace(drive.status, supported_modes=values.get(
                 cia402.SUPPORTED_MODES, 0))
         if not read:

@@ -1,4 +1,7 @@
-"""Whether a move or a homing ended where it was asked to, by the position, not the word.
+"""Where a move may go, and whether it or a homing ended there, by the position, not the word.
+
+A move's target must lie within the drive's software position limits (0x607D, read once per
+drive): a target outside them is refused before anything is sent.
 
 A drive's "target reached" (statusword bit 10) says it finished the set-point it holds, not
 that this set-point is the caller's: a set-point committed before its target arrived (or
@@ -9,7 +12,7 @@ whose method homes where the axis stands (35, 37) only when the position is the 
 """
 
 import asyncio
-from typing import Optional
+from typing import Optional, Tuple
 
 from . import cia402
 
@@ -28,6 +31,29 @@ async def position_window(drive, timeout: float) -> int:
         window = read.get(cia402.POSITION_WINDOW, WINDOW_OFF)
         drive.position_window = DEFAULT_WINDOW if window == WINDOW_OFF else window
     return drive.position_window
+
+
+async def software_limits(drive, timeout: float) -> Optional[Tuple[int, int]]:
+    """Return the drive's software position limits (0x607D:1, :2), None when it has none.
+
+    Read once, then kept; limits that cannot be read, or whose minimum is not below the
+    maximum (0, 0 on many drives), limit nothing.
+    """
+    if drive.position_limits is None:
+        read = await asyncio.wrap_future(drive.objects.read_entries(
+            cia402.SOFTWARE_POSITION_LIMIT, (1, 2), '<i', timeout))
+        lowest, highest = read.get(1), read.get(2)
+        drive.position_limits = ((lowest, highest) if lowest is not None
+                                 and highest is not None and lowest < highest else ())
+    return drive.position_limits or None
+
+
+def outside_limits(node_id: int, target: int, limits: Optional[Tuple[int, int]]) -> str:
+    """Return why ``target`` is refused by ``limits``, or ''."""
+    if limits is None or limits[0] <= target <= limits[1]:
+        return ''
+    return (f'node {node_id}: target {target} is outside its software position limits '
+            f'{limits[0]}..{limits[1]} (0x607D, drive units); nothing was sent')
 
 
 def missed(node_id: int, wanted: int, position: int, window: int,

@@ -14,7 +14,7 @@ import contextvars
 from typing import Callable, Dict, Optional
 
 from . import cia402
-from .drive_arrival import HOME_HERE, missed, position_window
+from .drive_arrival import HOME_HERE, missed, outside_limits, position_window, software_limits
 from .drive_checks import ENABLED_COMMANDS, lost_problem, SHUTTING_DOWN, state_problem
 from .drive_standstill import wait_for_standstill
 from .drive_status import DriveResult
@@ -71,17 +71,20 @@ class DriveCommands:
         """
         sequence = getattr(self, f'_{command}')
         return await self._own(drive, lambda: sequence(drive, mode), timeout, reads,
-                               enabled=command in ENABLED_COMMANDS)
+                               enabled=command in ENABLED_COMMANDS,
+                               halt_on_timeout=command == 'home')
 
     async def move(self, drive, position: int, relative: bool, velocity: int,
-                   on_feedback: Optional[Callable], token: object, reads: int) -> object:
+                   on_feedback: Optional[Callable], token: object, reads: int,
+                   timeout: float) -> object:
         """Move in profile position to ``position``; return the DriveResult.
 
-        ``token`` names this move to :meth:`cancel`, which then ends it only while it runs.
+        ``token`` names this move to :meth:`cancel`, which then ends it only while it runs;
+        past ``timeout`` the drive is halted where it is.
         """
         return await self._own(drive, lambda: self._move(drive, position, relative, velocity,
-                                                         on_feedback), None, reads, token,
-                               enabled=True)
+                                                         on_feedback), timeout, reads, token,
+                               enabled=True, halt_on_timeout=True)
 
     def set_point(self, drive, position: int, reads: int) -> None:
         """Take ``position`` as the next PP set-point (on the loop); the latest one wins."""
@@ -116,7 +119,8 @@ class DriveCommands:
         await asyncio.gather(*tasks, return_exceptions=True)
 
     async def _own(self, drive, sequence: Callable, timeout: Optional[float],
-                   reads: Optional[int], token: object = None, enabled: bool = False):
+                   reads: Optional[int], token: object = None, enabled: bool = False,
+                   halt_on_timeout: bool = False):
         task = asyncio.current_task()
         previous = self._tasks.get(drive.node_id)
         if previous is not None and not previous.done():
@@ -138,9 +142,11 @@ class DriveCommands:
                                failure.abort_code)
         except TimeoutError:
             status = service.status(node_id)
-            return DriveResult(False, f'timed out after {timeout:g} s: node {node_id} is '
-                                      f'{status.state} (statusword 0x{status.statusword:04X}, '
-                                      f'mode {status.mode})', status)
+            message = (f'timed out after {timeout:g} s: node {node_id} is {status.state} '
+                       f'(statusword 0x{status.statusword:04X}, mode {status.mode})')
+            if halt_on_timeout:  # a motion that did not end in time does not run on
+                message = await self._halt_after_cancel(drive, message)
+            return DriveResult(False, message, service.status(node_id))
         except asyncio.CancelledError:
             reason = self._reasons.pop(task, SHUTTING_DOWN)
             halting = task in self._halt_when_cancelled
@@ -395,14 +401,20 @@ class DriveCommands:
 
     async def _move(self, drive, position: int, relative: bool, velocity: int,
                     on_feedback: Optional[Callable]) -> str:
-        await self._change_to_pp(drive)
-        if velocity:
-            await self._send(drive, {cia402.PROFILE_VELOCITY_OBJECT: velocity})
         window = await position_window(drive, SEND_TIMEOUT)
         wanted = position
         if relative:  # from where the axis stands: the set-point it last finished
             await self._read_position(drive)
             wanted += self._service.status(drive.node_id).position
+        problem = outside_limits(drive.node_id, wanted,
+                                 await software_limits(drive, SEND_TIMEOUT))
+        if problem:
+            raise DriveFailed(problem)
+        await self._change_to_pp(drive)
+        # 0: the profile velocity the drive was configured with, not the last move's.
+        velocity = velocity or drive.profile_velocity
+        if velocity and velocity != drive.objects.value(cia402.PROFILE_VELOCITY_OBJECT):
+            await self._send(drive, {cia402.PROFILE_VELOCITY_OBJECT: velocity})
         mark = await self._new_set_point(drive, position, relative)
         while True:
             status = await self._after(drive, mark, lambda s: True)

@@ -180,6 +180,25 @@ class DriveObjects:
             self.commanded.update(values)
         return self._write_by_sdo(data, timeout)
 
+    def value(self, index: int) -> Optional[int]:
+        """Return the value last commanded (or read) of ``index``, None when unknown."""
+        with self._lock:
+            return self.commanded.get(index)
+
+    def read_entries(self, index: int, subindexes: Iterable[int], fmt: str,
+                     timeout: float) -> 'Future[Dict[int, int]]':
+        """Read sub-entries of record ``index`` coded as ``fmt``; resolves subindex: value."""
+        subindexes = list(subindexes)
+        batch = self._sdo_batch([Access(self.node_id, index, sub) for sub in subindexes],
+                                timeout)
+        size = struct.calcsize(fmt)
+        done: Future = Future()
+        batch.add_done_callback(lambda finished: answer(done, {
+            sub: struct.unpack(fmt, bytes(result.data[:size]).ljust(size, b'\0'))[0]
+            for sub, result in zip(subindexes, finished.result(), strict=True)
+            if result.success}))
+        return done
+
     def read_initial(self, timeout: float) -> 'Future[Dict[int, int]]':
         """Read what the gateway needs of a drive it now hears (see ``know_commanded``)."""
         return self.read(INITIAL_READS, timeout)

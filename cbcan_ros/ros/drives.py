@@ -266,6 +266,9 @@ class DriveTopics:
                                     and math.isfinite(goal.velocity)):
             refusal = (f'position {goal.position} and velocity {goal.velocity} must be '
                        f'finite numbers; nothing was sent')
+        if refusal is None and not (math.isfinite(goal.timeout) and goal.timeout >= 0):
+            refusal = (f'timeout {goal.timeout} must be 0 (the default, 60 s) or more '
+                       f'seconds; nothing was sent')
         if refusal:
             goal_handle.abort()
             return DriveMove.Result(success=False, message=refusal)
@@ -283,7 +286,7 @@ class DriveTopics:
                 velocity=float(joint.velocity(status.velocity))))
 
         future, cancel = self._service.move(joint.node_id, round(position), goal.relative,
-                                            round(velocity), feedback)
+                                            round(velocity), feedback, goal.timeout)
         key = bytes(goal_handle.goal_id.uuid)
         self._cancels[key] = cancel
         done = RclpyFuture()

@@ -7,7 +7,7 @@ range checks a drive makes before it takes a value (SDO abort 0x06090030 otherwi
 from typing import Iterable
 
 from durand.datatypes import DatatypeEnum as DT
-from durand.object_dictionary import Array, ObjectDictionary, Variable
+from durand.object_dictionary import Array, ObjectDictionary, Record, Variable
 from durand.services.sdo.server import SDODomainAbort
 
 from . import cia402_states as cia402
@@ -24,6 +24,7 @@ MODE_DISPLAY = 0x6061
 POSITION_ACTUAL = 0x6064
 VELOCITY_ACTUAL = 0x606C
 POSITION_WINDOW = 0x6067
+SOFTWARE_POSITION_LIMIT = 0x607D
 TARGET_TORQUE = 0x6071
 TORQUE_ACTUAL = 0x6077
 TARGET_POSITION = 0x607A
@@ -88,6 +89,10 @@ def add_drive_objects(od: ObjectDictionary, modes: Iterable[int]) -> None:
     od[SIMULATED_FAULT] = Variable(DT.UNSIGNED16, 'rw', 0, name='Simulated fault')
     od[SUPPORTED_MODES] = Variable(DT.UNSIGNED32, 'ro', cia402.supported_modes_bits(modes),
                                    name='Supported drive modes')
+    limits = Record(name='Software position limit')  # none, as many drives ship
+    limits[1] = Variable(DT.INTEGER32, 'rw', -(1 << 31), name='Min position limit')
+    limits[2] = Variable(DT.INTEGER32, 'rw', (1 << 31) - 1, name='Max position limit')
+    od[SOFTWARE_POSITION_LIMIT] = limits
     od[CONSUMER_HEARTBEAT] = Array(Variable(DT.UNSIGNED32, 'rw', 0,
                                             name='Consumer heartbeat time'),
                                    length=1, name='Consumer heartbeat time')
