@@ -305,3 +305,15 @@ def test_a_move_with_velocity_0_uses_the_drives_configured_profile_velocity(rig)
         node_id=NODE, position=0.5)), WAIT)
     assert wait_for_future(goal.get_result_async(), WAIT).result.success
     assert axis.drive.value(PROFILE_VELOCITY, 0) == configured
+
+
+def test_enabling_in_a_torque_mode_holds_the_configured_torque(rig):
+    # A gravity-loaded axis: 0.005 N·m at 1000 drive units per N·m holds it (5 units).
+    axis = rig(**{f'node_{NODE}.hold_torque': 0.005, f'node_{NODE}.torque_scale': 1000.0,
+                  'drives.command_timeout': 0.3})
+    axis.enable(CST)
+    wait_until(lambda: axis.drive.torque == 5, WAIT, 'the drive holding torque 5')
+    axis.target.publish(Float64(data=0.02))
+    wait_until(lambda: axis.drive.torque == 20, WAIT, 'the drive at torque 20')
+    wait_until(lambda: axis.states[-1].halted, WAIT, 'halted by the command timeout')
+    assert axis.drive.value(0x6071, 0) == struct.pack('<h', 5)  # held, not dropped

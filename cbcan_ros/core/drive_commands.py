@@ -245,6 +245,8 @@ class DriveCommands:
         if index is None:
             return 0
         value = 0
+        if index == cia402.TARGET_TORQUE:
+            value = self._service.settings.hold_torques.get(drive.node_id, 0)
         if index == cia402.TARGET_POSITION:
             read = await asyncio.wrap_future(drive.objects.read([cia402.POSITION_ACTUAL],
                                                                 SEND_TIMEOUT))

@@ -150,8 +150,9 @@ def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
             values = {cia402.CONTROLWORD: word}
             if status.mode in cia402.HALT_BY_TARGET:
                 index = cia402.HALT_BY_TARGET[status.mode]
-                values = {index: status.position if index == cia402.TARGET_POSITION else 0,
-                          **values}
+                stopping = {cia402.TARGET_POSITION: status.position,
+                            cia402.TARGET_TORQUE: settings.hold_torques.get(drive.node_id, 0)}
+                values = {index: stopping.get(index, 0), **values}
         drive.objects.write(values, HALT_TIMEOUT)
     # One line per drive; later halts are counted (diagnostics), not logged again.
     (LOGGER.warning if count == 1 else LOGGER.debug)(

@@ -24,6 +24,8 @@ class DriveSettings:
     # 0x6007 written to a drive that has 0 there (no reaction to a lost heartbeat); 0 = not
     # written, enable refused instead; None = the drives do not watch the gateway.
     abort_connection: Optional[int] = None
+    # The target torque that holds each drive in PT and CST (drive units), by node id.
+    hold_torques: Dict[int, int] = field(default_factory=dict)
     feedback_period: float = 0.02  # s between feedback cycles (the SYNC period with SYNC)
 
 

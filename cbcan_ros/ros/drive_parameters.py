@@ -109,6 +109,12 @@ def declare(declare_parameter: Callable, drive_ids: List[int]) -> None:
             declare_parameter(f'node_{node_id}.{name}', 1.0,
                               f'Drive {node_id}: {unit}; negative turns the direction round',
                               floating_point_range=_between(-1e12, 1e12))
+        declare_parameter(f'node_{node_id}.hold_torque', 0.0,
+                          f'Drive {node_id}: torque (N·m, or N) set as the target when it is '
+                          f'enabled in profile or cyclic torque (PT, CST) and when the command '
+                          f'timeout stops it there. 0 lets a gravity-loaded axis fall unless '
+                          f'its brake holds it: give the torque that holds the load',
+                          floating_point_range=_between(-1e12, 1e12))
         declare_parameter(f'node_{node_id}.position_offset', 0.0,
                           f'Drive {node_id}: joint position (joint units) where the drive '
                           f'reads 0',
@@ -145,7 +151,20 @@ def settings(value: Callable, drive_ids: List[int], heartbeat_node_id: int,
                          heartbeat_node_id=heartbeat_node_id if drive_ids else 0,
                          abort_connection=(None if unwatched
                                            else ABORT_CONNECTION[abort_connection]),
+                         hold_torques={node_id: hold_torque(value, node_id)
+                                       for node_id in drive_ids},
                          feedback_period=sync_period or FEEDBACK_PERIOD)
+
+
+def hold_torque(value: Callable, node_id: int) -> int:
+    """Return ``node_<id>.hold_torque`` in the drive's units; raise when it does not fit."""
+    torque = value(f'node_{node_id}.hold_torque') * value(f'node_{node_id}.torque_scale')
+    if not -(1 << 15) <= round(torque) < 1 << 15:
+        raise ConfigurationError(f'node_{node_id}.hold_torque',
+                                 value(f'node_{node_id}.hold_torque'), 'does not fit the '
+                                 "drive's target torque (INTEGER16) at its torque_scale",
+                                 f'{-(1 << 15)}..{(1 << 15) - 1} drive units')
+    return round(torque)
 
 
 def own_node_id(value: Callable, listed: Dict[str, List[int]]) -> int:
