@@ -224,17 +224,20 @@ def hold_tpdos_until_re_read(axis) -> None:
     listeners[listeners.index(drives._on_pdo)] = waiting.put
 
 
-@pytest.mark.parametrize('late', [False, True], ids=['tpdo_on_time', 'tpdo_after_re_read'])
+@pytest.mark.parametrize('late, acts_after', [(False, 0.0), (True, 0.0), (True, 0.2)],
+                         ids=['tpdo_on_time', 'tpdo_after_re_read', 'acts_after_confirming'])
 def test_a_drive_found_running_is_shown_stopped_once_the_gateway_stops_it(
-        ros_context, start_durand, late):
+        ros_context, start_durand, late, acts_after):
     """The stop's statusword counts, sent on change only, and whenever its TPDO is taken.
 
     An enable that went by a state shown OPERATION_ENABLED would send nothing and leave the
-    drive in quick stop, deaf to every target.
+    drive in quick stop, deaf to every target. A drive may confirm the stop before it acts
+    on it: the read-back waits for the statusword that shows it.
     """
     on_change = tuple(replace(pdo, event_timer=0) if (pdo.kind, pdo.number) == ('tpdo', 1)
                       else pdo for pdo in PDOS)
     axis, faults = enabled_behind_a_faulty_adapter(start_durand, watching=False, pdos=on_change)
+    axis.drive.acts_after_confirming = acts_after
     try:
         pull(faults)
         wait_until(lambda: axis.latest_state() == 'UNKNOWN', WAIT, 'drive_state UNKNOWN')

@@ -254,7 +254,7 @@ class DriveService:
         with drive.sending:
             with self._lock:
                 status = shown(drive)
-                problem = (checks.lost_problem(drive, reads, status)
+                problem = (checks.lost_problem(drive, reads, status, self._bus_down())
                            or (enabled and checks.state_problem(status, True, True)))
                 if problem:
                     return resolved(SdoResult.failed(problem))
@@ -269,6 +269,10 @@ class DriveService:
                     drive.controlword = values[cia402.CONTROLWORD]
             write = drive.objects.write_by_sdo if by_sdo else drive.objects.write
             return write(values, timeout)
+
+    def bus_down(self) -> Optional[str]:
+        """Return why the bus is down, None while it is up."""
+        return self._bus_down()
 
     def when_updated(self, drive: DriveRecord, wake: Callable[[], None]) -> None:
         """Call ``wake()`` on the drives' loop at the next feedback or loss of ``drive``."""

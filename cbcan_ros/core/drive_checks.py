@@ -24,14 +24,19 @@ NOTHING_SENT = 'nothing was sent'
 SHUTTING_DOWN = 'the gateway is shutting down'
 
 
-def lost_problem(drive: DriveRecord, reads: Optional[int], status: DriveStatus) -> Optional[str]:
+def lost_problem(drive: DriveRecord, reads: Optional[int], status: DriveStatus,
+                 bus_down: Optional[str] = None) -> Optional[str]:
     """Return why a sequence asked for when ``drive`` had been read ``reads`` times stops.
 
     ``None`` while the drive is heard and not read again since (it did not boot); ``reads``
-    None (a stop): never, whatever drive is there, heard or not.
+    None (a stop): never, whatever drive is there, heard or not. ``bus_down``: why the bus is
+    down, if it is: the bus going down loses every drive, and is the cause to name.
     """
     if reads is None or (drive.heard and drive.read_wanted == reads):
         return None
+    if bus_down and not drive.heard:
+        return (f'{bus_down}: node {drive.node_id} is no longer heard (state {status.state}); '
+                f'enable it afresh once the bus is back')
     return (f'node {drive.node_id} stopped heartbeating or booted during the command: state '
             f'{status.state}; enable it afresh')
 

@@ -181,7 +181,7 @@ class DriveCommands:
             woken = loop.create_future()
             self._service.when_updated(drive, lambda f=woken: f.done() or f.set_result(None))
             status = self._service.status(drive.node_id)
-            _check_same_drive(drive, status)
+            _check_same_drive(drive, status, self._service.bus_down())
             if status.faulted and not fault_ok:
                 raise DriveFailed(f'node {drive.node_id} went to {status.state}: error '
                                   f'0x{status.error_code:04X} ({status.error or "reading"})',
@@ -488,7 +488,7 @@ class DriveCommands:
                 f'{self._service.status(drive.node_id).position} (drive units)')
 
 
-def _check_same_drive(drive, status) -> None:
+def _check_same_drive(drive, status, bus_down: Optional[str]) -> None:
     """Raise when ``drive`` is lost, or was read again since the sequence was asked for.
 
     A drive that booted (or was heard again) is not the one the sequence was asked for,
@@ -499,7 +499,7 @@ def _check_same_drive(drive, status) -> None:
     reads = READS_AT_START.get()
     if reads is None and not drive.heard:
         raise _Unheard
-    problem = lost_problem(drive, reads, status)
+    problem = lost_problem(drive, reads, status, bus_down)
     if problem:
         raise DriveFailed(problem)
 

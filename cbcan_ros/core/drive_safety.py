@@ -30,6 +30,8 @@ ON_SHUTDOWN = {'quick_stop': cia402.QUICK_STOP, 'disable': cia402.DISABLE_VOLTAG
 # drives.abort_connection: the 0x6007 codes of CiA 402; 0 (no reaction) is never written.
 ABORT_CONNECTION = {'quick_stop': 3, 'disable': 2, 'fault': 1, 'none': 0}
 NO_REACTION = 0
+# Between two reads of a statusword that does not show the stop yet.
+STOP_READ_INTERVAL = 0.02
 # How long shutdown waits for the drives to confirm its stop commands.
 SHUTDOWN_WAIT = 0.5
 CONSUMER_TIMEOUT = 2.0
@@ -117,15 +119,33 @@ async def secure_heard_drive(drive: DriveRecord, lock, sdo_batch, settings: Driv
         with lock:
             running = drive.status.state == cia402.OPERATION_ENABLED
         if running and await stop_unattended(drive, lock, 'was OPERATION_ENABLED when heard'):
-            read = await asyncio.wrap_future(read_feedback(drive, [cia402.STATUSWORD],
-                                                           CONSUMER_TIMEOUT))
-            if cia402.STATUSWORD not in read:
-                LOGGER.warning('drive %d: its statusword after the quick stop could not be '
-                               'read; it is shown as read before until its next one',
-                               drive.node_id)
+            await _read_back_stop(drive, read_feedback)
         await watch_the_gateway(sdo_batch, drive, lock, settings, beat_now)
     except Exception as error:  # noqa: BLE001 - the drive is read; say what failed
         LOGGER.error('drive %d: its re-read could not finish (%r)', drive.node_id, error)
+
+
+async def _read_back_stop(drive: DriveRecord, read_feedback) -> None:
+    """Read the statusword until it shows the stop, within ``CONSUMER_TIMEOUT``.
+
+    CiA 402 lets a drive confirm the write before it acts on it: the first read can still
+    show OPERATION_ENABLED, and the drive would be shown running until its next statusword.
+    """
+    deadline = time.monotonic() + CONSUMER_TIMEOUT
+    while True:
+        read = await asyncio.wrap_future(read_feedback(drive, [cia402.STATUSWORD],
+                                                       CONSUMER_TIMEOUT))
+        if cia402.STATUSWORD not in read:
+            LOGGER.warning('drive %d: its statusword after the quick stop could not be read; '
+                           'it is shown as read before until its next one', drive.node_id)
+            return
+        if cia402.state_of(read[cia402.STATUSWORD]) != cia402.OPERATION_ENABLED:
+            return
+        if time.monotonic() >= deadline:
+            LOGGER.warning('drive %d still shows OPERATION_ENABLED %.1f s after it took the '
+                           'quick stop', drive.node_id, CONSUMER_TIMEOUT)
+            return
+        await asyncio.sleep(STOP_READ_INTERVAL)
 
 
 def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,

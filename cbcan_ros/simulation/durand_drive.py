@@ -96,6 +96,9 @@ class DurandDrive(DurandDevice):
     # False: a drive that ignores the halt bit in the cyclic modes, as several vendors' do
     # (their manuals say bit 8 has no function there).
     halts_in_cyclic_modes = True
+    # Seconds a drive confirms an SDO write of the controlword before it acts on it, as CiA
+    # 402 allows (the statusword read right after still shows the state before).
+    acts_after_confirming = 0.0
 
     def __init__(self, node_id: int, modes=cia402.ALL_MODES, tick: float = 0.01,
                  **device_options):
@@ -207,8 +210,8 @@ class DurandDrive(DurandDevice):
             write(data)
         finally:
             self._in_rpdo = False
-        if self._rpdo_controlword is not None:
-            self._logged(CONTROLWORD, 0, self._on_controlword)(self._rpdo_controlword)
+        if self._rpdo_controlword is not None:  # no confirmation to come first
+            self._logged(CONTROLWORD, 0, self._act_on_controlword)(self._rpdo_controlword)
 
     def _boot(self, clear: range, durand_reset: Callable[[], None]) -> None:
         super()._boot(clear, durand_reset)
@@ -231,6 +234,13 @@ class DurandDrive(DurandDevice):
         if self._in_rpdo:
             self._rpdo_controlword = controlword  # acted on once the whole frame is in
             return
+        if self.acts_after_confirming:
+            shared_scheduler().add(self.acts_after_confirming, self._logged(
+                CONTROLWORD, 0, self._act_on_controlword), (controlword,))
+            return
+        self._act_on_controlword(controlword)
+
+    def _act_on_controlword(self, controlword: int) -> None:
         previous, self._controlword = self._controlword, controlword
         state = self._drive_state
         if state is State.FAULT:
