@@ -243,7 +243,7 @@ def test_a_resumed_drive_left_without_targets_is_halted_again(rig):
     bus, frames = axis.gateway.raw_bus(), []
     try:
         drives.send = delayed
-        resumed = axis.command('resume')
+        resumed = axis.command('resume', timeout=WAIT)  # longer than the delay it meets
         drives.send = send
         assert resumed.success, resumed.message
         watch(bus, frames, released_then_halted, 'the release, then a halt, in RPDO 1')

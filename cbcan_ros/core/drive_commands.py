@@ -124,17 +124,19 @@ class DriveCommands:
         task = asyncio.current_task()
         previous = self._tasks.get(drive.node_id)
         if previous is not None and not previous.done():
-            self._reasons[previous] = 'replaced by a newer command, move or target'
+            # A cancel not taken yet keeps its reason: the caller asked for it first.
+            earlier = self._reasons.get(previous)
+            replaced = 'replaced by a newer command, move or target'
+            self._reasons[previous] = f'{earlier}; {replaced}' if earlier else replaced
             previous.cancel()
         self._tasks[drive.node_id] = task
         self._tokens[task] = token
-        READS_AT_START.set(reads)  # this task's own context, and wait_for's
+        READS_AT_START.set(reads)  # this task's own context
         ENABLED_ONLY.set(enabled)
         service, node_id = self._service, drive.node_id
         try:
-            if timeout:
-                message = await asyncio.wait_for(sequence(), timeout)
-            else:
+            # In this task (not wait_for's own): a cancel reaches the sequence at once.
+            async with asyncio.timeout(timeout or None):
                 message = await sequence()
             return DriveResult(True, message, service.status(node_id))
         except DriveFailed as failure:

@@ -36,14 +36,18 @@ def poll(drive, lock, read_feedback: Callable[[object, List[int], float], Future
         if not drive.heard or drive.ready != drive.read_wanted:
             drive.polled_mapped = set()  # once re-read, all it maps counts as new
             return
+        # Keyed by the mapping read: one read again may send the same objects on another
+        # COB-ID, and what the drive sent there before the gateway followed was lost.
+        reads = drive.objects.mapping_reads()
         mapped = drive.objects.mapped_feedback()
-        drive.polled_mapped &= mapped  # PRE_OPERATIONAL for a moment, it sent no TPDO
+        keyed = {(index, reads) for index in mapped}
+        drive.polled_mapped &= keyed  # PRE_OPERATIONAL for a moment, it sent no TPDO
         if drive.polling:
             return
-        fresh = mapped - drive.polled_mapped
+        fresh = {index for index, _ in keyed - drive.polled_mapped}
         if not (now or fresh) and time.monotonic() - drive.polled < POLL_PERIOD:
             return
-        drive.polled, drive.polled_mapped = time.monotonic(), mapped
+        drive.polled, drive.polled_mapped = time.monotonic(), keyed
         missing = [index for index in FEEDBACK if index not in mapped or index in fresh]
         if not missing:
             return

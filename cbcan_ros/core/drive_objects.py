@@ -123,6 +123,10 @@ class DriveObjects:
                 and (producing or not mapping.synchronous) for entry in mapping.entries
                 if entry.index in FEEDBACK and entry.subindex == 0}
 
+    def mapping_reads(self) -> int:
+        """Return how many times the PDO service read the drive's mapping (0: none)."""
+        return self._pdo.mapping_reads(self.node_id) if self.node_id in self._pdo.node_ids else 0
+
     def write(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':
         """Send ``values`` (object: value) to the drive; resolves when all went out or why not.
 

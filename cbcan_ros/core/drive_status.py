@@ -99,7 +99,8 @@ class DriveRecord:
     last_target: float = 0.0
     polling: bool = False
     polled: float = 0.0  # time.monotonic() of the last SDO read of its feedback
-    polled_mapped: Set[int] = field(default_factory=set)  # what TPDOs brought at that read
+    # What TPDOs brought at that read: (object, mapping read it came by).
+    polled_mapped: Set[Tuple[int, int]] = field(default_factory=set)
     timeouts: int = 0
     emcy_code: int = 0  # the error code of the last EMCY
     lost_powered: bool = False  # its heartbeat stopped while its power stage was on

@@ -169,6 +169,11 @@ class PdoService:
             device = self._devices[node_id]
             return dict(device.tpdos), dict(device.rpdos)
 
+    def mapping_reads(self, node_id: int) -> int:
+        """Return how many times the mapping of a device served was read (each a new one)."""
+        with self._lock:
+            return self._devices[node_id].done
+
     def statistics(self) -> Dict[int, PdoStatistics]:
         """Return the statistics of every device served, by node id."""
         now = time.monotonic()
