@@ -199,7 +199,11 @@ class DriveTopics:
         self._send_target(self._joints[node_id], message.data, f'node_{node_id}/target')
 
     def _on_joint_commands(self, message: JointState) -> None:
-        for position, name in enumerate(message.name):
+        # ros2_control's topic-based hardware interface fills each array only for the joints
+        # that have that command interface: with mixed interfaces, a shorter array holds the
+        # values of the joints taking it, in the order of the names.
+        taken: Dict[str, int] = {}
+        for name in message.name:
             joint = self._by_name.get(name)
             if joint is None:
                 self._log_refusal(f"joint_commands: joint {name!r} is no drive's (joints: "
@@ -209,13 +213,17 @@ class DriveTopics:
             field = {cia402.TARGET_POSITION: 'position', cia402.TARGET_VELOCITY: 'velocity',
                      cia402.TARGET_TORQUE: 'effort'}.get(cia402.TARGET_OF_MODE.get(mode))
             values = getattr(message, field) if field else ()
-            if field is None or position >= len(values):
+            index = (message.name.index(name) if len(values) == len(message.name)
+                     else taken.get(field, 0))
+            if field:
+                taken[field] = taken.get(field, 0) + 1
+            if field is None or index >= len(values):
                 self._log_refusal(f'joint_commands: joint {name!r} (node {joint.node_id}) is '
                                   f'in {cia402.mode_name(mode)}, which takes '
                                   f'{field or "no target"}, and the message has none for it',
                                   joint.node_id)
                 continue
-            self._send_target(joint, values[position], 'joint_commands')
+            self._send_target(joint, values[index], 'joint_commands')
 
     def _send_target(self, joint: Joint, value: float, topic: str) -> None:
         refusal = self._refusal()
