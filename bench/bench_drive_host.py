@@ -157,7 +157,8 @@ def run_drives(args, bus_options: Dict) -> None:
     """Host simulated drives ``--nodes`` until told to stop (``--shared-socket``: on one)."""
     drive_module, pdo_module = import_retrying('cbcan_ros.simulation.durand_drive',
                                                'cbcan_ros.simulation.durand_drive_pdos')
-    pdos = pdo_module.default_drive_pdos(args.transmission_type)
+    pdos = (pdo_module.default_drive_pdos(args.transmission_type) if args.transmission_type
+            else pdo_module.drive_pdos(args.layout))
     shared = None
     if args.shared_socket:
         # python-can finds a bus class by its interface name in BACKENDS (the entry point
@@ -284,6 +285,9 @@ def main(argv=None) -> int:
                         default=[1], help='node ids of the drives (drives mode), e.g. 1,2,3')
     parser.add_argument('--transmission-type', type=int, default=0,
                         help="0: the drives' default PDOs (asynchronous); 1: every SYNC")
+    parser.add_argument('--layout', default='combined',
+                        help="the drives' PDO layout (simulated_drives.LAYOUTS), without "
+                             '--transmission-type')
     parser.add_argument('--shared-socket', action='store_true',
                         help='drives mode: one udp_multicast socket for all the drives')
     parser.add_argument('--record', type=lambda text: {int(i, 0) for i in text.split(',')},

@@ -93,3 +93,14 @@ def test_an_rpdo_that_maps_an_object_the_gateway_holds_no_value_for_is_not_used(
     assert usable_frames({1: plain}, EVERYTHING, sync_producing=False) == []
     assert usable_frames({1: plain}, EVERYTHING, sync_producing=True) == [
         Frame(1, (CW,), True)]
+
+
+def test_an_rpdo_that_maps_another_object_is_used_with_the_bytes_read_from_the_drive():
+    max_torque = 0x6072
+    mapping = PdoMapping(node_id=7, kind='rpdo', number=4, cob_id=0x507, transmission_type=255,
+                         enabled=True, entries=(MappedEntry(CW, 0, 16, 0),
+                                                MappedEntry(max_torque, 0, 16, 16)))
+    held = {(max_torque, 0): b'\xe8\x03'}
+    assert usable_frames({4: mapping}, EVERYTHING, False, held) == [
+        Frame(4, (CW,), False, ((max_torque, 0),))]
+    assert usable_frames({4: mapping}, EVERYTHING, False, {(max_torque, 0): b'\xe8'}) == []

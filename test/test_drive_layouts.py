@@ -9,6 +9,7 @@ set-point handshake what went on the bus: the target in the drive before the con
 rising bit 4, which the drive takes with the target it holds then.
 """
 
+from dataclasses import replace
 import struct
 
 from action_msgs.msg import GoalStatus
@@ -22,9 +23,11 @@ from cbcan_ros.core import cia402
 from cbcan_ros.core.nmt import OPERATIONAL
 from cbcan_ros.simulation.durand_drive_objects import (
     HOME_OFFSET,
+    MAX_TORQUE,
     PROFILE_VELOCITY,
     SOFTWARE_POSITION_LIMIT,
     TARGET_POSITION,
+    TARGET_VELOCITY,
 )
 from cbcan_ros.simulation.durand_drive_pdos import drive_pdos as layout_pdos
 from cbcan_ros.simulation.simulated_drives import LAYOUTS
@@ -317,3 +320,27 @@ def test_enabling_in_a_torque_mode_holds_the_configured_torque(rig):
     wait_until(lambda: axis.drive.torque == 20, WAIT, 'the drive at torque 20')
     wait_until(lambda: axis.states[-1].halted, WAIT, 'halted by the command timeout')
     assert axis.drive.value(0x6071, 0) == struct.pack('<h', 5)  # held, not dropped
+
+
+def test_an_rpdo_mapping_an_object_the_gateway_does_not_command_repeats_the_drives_value(rig):
+    # RPDO 2 maps the max torque (0x6072) beside the target velocity: a frame of the
+    # gateway's making would set it to 0, and the drive could then give no torque at all.
+    pdos = tuple(replace(pdo, mapping=((TARGET_VELOCITY, 0), (MAX_TORQUE, 0)))
+                 if (pdo.kind, pdo.number) == ('rpdo', 2) else pdo for pdo in layout_pdos(
+                     'combined'))
+    axis = rig(pdos=pdos)
+    axis.enable(CSV)
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        # A stream, as a program sends: by SDO until the gateway has read the mapping and
+        # the max torque, then in RPDO 2.
+        def streamed(seen):
+            axis.target.publish(Float64(data=1.0))
+            return any(m.arbitration_id == 0x300 + NODE for m in seen)
+        watch(bus, frames, streamed, 'RPDO 2 on the bus')
+        wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    finally:
+        bus.shutdown()
+    sent = next(m for m in frames if m.arbitration_id == 0x300 + NODE)
+    assert struct.unpack_from('<iH', sent.data) == (1000, 1000)
+    assert axis.drive.value(MAX_TORQUE, 0) == struct.pack('<H', 1000)

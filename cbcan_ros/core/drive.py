@@ -462,6 +462,7 @@ class DriveService:
                             if index in values}, time.monotonic(), reread=request, since=since)
         await safety.secure_heard_drive(drive, self._lock, self._sdo_batch, self.settings,
                                         self._beat_now, self.read_feedback)
+        await asyncio.wrap_future(drive.objects.read_held(DEFAULT_TIMEOUT))
         with self._lock:
             if request != drive.read_wanted:
                 return  # it booted meanwhile: a newer read follows

@@ -33,6 +33,10 @@ def poll(drive, lock, read_feedback: Callable[[object, List[int], float], Future
     timeout)`` reads and takes them (the drive service's); ``lock`` guards the drive record.
     """
     with lock:
+        ready = drive.heard and drive.ready == drive.read_wanted
+    if ready:  # a mapping read since its re-read: what its RPDOs also map
+        drive.objects.read_held(POLL_TIMEOUT)
+    with lock:
         if not drive.heard or drive.ready != drive.read_wanted:
             drive.polled_mapped = set()  # once re-read, all it maps counts as new
             return

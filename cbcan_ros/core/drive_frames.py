@@ -19,9 +19,10 @@ object a write needs (a Maxon EPOS2 ships RPDO1 = 0x6040, RPDO2 = 0x6040 + 0x606
   (at the next SYNC): such a set of frames is not used.
 
 An RPDO is usable when it is enabled, sound, synchronous only while the gateway produces SYNC,
-and maps nothing but objects the gateway commands (subindex 0) whose values it knows: a frame
-carries every object it maps, and a vendor object the gateway holds no value for would go out
-as a value of the gateway's making.
+and maps nothing but objects whose values the gateway knows: those it commands (subindex 0),
+and others (0x6072 max torque, an offset, a vendor object) whose bytes it read from the drive
+when it heard it; those go out as the drive holds them. A frame carries every object it maps,
+and one the gateway holds no value for would go out as a value of the gateway's making.
 """
 
 from dataclasses import dataclass
@@ -38,11 +39,12 @@ EXACT_SEARCH_LIMIT = 12
 
 @dataclass(frozen=True)
 class Frame:
-    """One RPDO of a write: the commanded objects it maps, in mapping order."""
+    """One RPDO of a write: the commanded objects it maps, and the others it repeats."""
 
     number: int
     indexes: Tuple[int, ...]
     synchronous: bool
+    held: Tuple[Tuple[int, int], ...] = ()  # (index, subindex) sent as read from the drive
 
     @property
     def controlword(self) -> bool:
@@ -63,19 +65,27 @@ class Plan:
 
 
 def usable_frames(rpdos: Mapping[int, PdoMapping], commanded: Iterable[int],
-                  sync_producing: bool) -> List[Frame]:
-    """Return the RPDOs a write may use, as frames; ``commanded``: the objects with a value."""
-    known = set(commanded)
+                  sync_producing: bool, held: Mapping[Tuple[int, int], bytes] = None
+                  ) -> List[Frame]:
+    """Return the RPDOs a write may use, as frames.
+
+    ``commanded``: the objects the gateway commands and has a value for; ``held``: other
+    objects' bytes as read from the drive, by (index, subindex).
+    """
+    known, held = set(commanded), held or {}
     frames = []
     for number, mapping in sorted(rpdos.items()):
         if (not mapping.enabled or mapping.problem or not mapping.entries
                 or (mapping.synchronous and not sync_producing)):
             continue
         entries = [entry for entry in mapping.entries if not entry.dummy]
-        if any(entry.subindex != 0 or entry.index not in known for entry in entries):
+        ours = [entry for entry in entries if entry.subindex == 0 and entry.index in known]
+        others = [entry for entry in entries if entry not in ours]
+        if any(len(held.get((entry.index, entry.subindex), b'')) != (entry.bits + 7) // 8
+               for entry in others):
             continue
-        frames.append(Frame(number, tuple(entry.index for entry in entries),
-                            mapping.synchronous))
+        frames.append(Frame(number, tuple(entry.index for entry in ours), mapping.synchronous,
+                            tuple((entry.index, entry.subindex) for entry in others)))
     return frames
 
 

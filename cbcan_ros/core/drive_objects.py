@@ -21,7 +21,7 @@ run by SDO.
 from concurrent.futures import Future
 import struct
 import threading
-from typing import Callable, Dict, Iterable, List, Optional, Set
+from typing import Callable, Dict, Iterable, List, Optional, Set, Tuple
 
 from . import cia402
 from .drive_frames import Frame, frame_values, Plan, plan, usable_frames
@@ -95,6 +95,10 @@ class DriveObjects:
         self._sync_producing = sync_producing
         self._lock = threading.Lock()
         self.commanded: Dict[int, int] = {}
+        # Objects its RPDOs map that the gateway does not command, as read from the drive
+        # after the mapping read number ``_held_reads`` (-1: to be read).
+        self._held: Dict[Tuple[int, int], bytes] = {}
+        self._held_reads = -1
         self._writes = 0  # writes begun, numbered
         self._controlword_write = 0  # the number of the latest write with a controlword
 
@@ -102,6 +106,7 @@ class DriveObjects:
         """Drop the commanded values (the drive booted: they are read again)."""
         with self._lock:
             self.commanded.clear()
+            self._held, self._held_reads = {}, -1
 
     def know(self, values: Dict[int, int]) -> None:
         """Take ``values`` as what the drive has now, without sending them."""
@@ -167,14 +172,19 @@ class DriveObjects:
                 return resolved(SdoResult.failed(
                     f'node {self.node_id}: a later command changed the controlword before '
                     f'this one was sent in full; the rest was not sent'))
-            commanded = dict(self.commanded)
+            commanded, held = dict(self.commanded), dict(self._held)
+        if any(key not in held for frame in frames for key in frame.held):
+            return resolved(SdoResult.failed(
+                f'node {self.node_id} booted before this command was sent in full; the rest '
+                f'was not sent'))
         futures = []
         for frame in frames:
             carried = frame_values(frame, commanded, previous, carry_controlword)
             # As bytes of the profile's types, whatever type the PDO service knows.
             futures.append(self._pdo.write(self.node_id, frame.number, [
                 EntryValue(index, 0, data=encode(index, value))
-                for index, value in carried.items()]))
+                for index, value in carried.items()] + [
+                EntryValue(index, sub, data=held[(index, sub)]) for index, sub in frame.held]))
         return all_of(futures)
 
     def write_by_sdo(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':
@@ -206,6 +216,42 @@ class DriveObjects:
     def read_initial(self, timeout: float) -> 'Future[Dict[int, int]]':
         """Read what the gateway needs of a drive it now hears (see ``know_commanded``)."""
         return self.read(INITIAL_READS, timeout)
+
+    def read_held(self, timeout: float) -> 'Future[None]':
+        """Read the objects its RPDOs map that the gateway does not command, when not yet.
+
+        Once per mapping read (and again after a boot): their bytes go into every frame of
+        those RPDOs as the drive holds them (``drive_frames.usable_frames``); until they are
+        read, those RPDOs are not used. Resolves once they are read (at once when there is
+        nothing to read).
+        """
+        reads = self.mapping_reads()
+        with self._lock:
+            if not reads or reads == self._held_reads:
+                return resolved(None)
+            self._held_reads = reads
+        _, rpdos = self._pdo.mappings(self.node_id)
+        others = sorted({(entry.index, entry.subindex) for mapping in rpdos.values()
+                         for entry in mapping.entries if not entry.dummy
+                         and (entry.subindex != 0 or entry.index not in COMMANDED)})
+        if not others:
+            return resolved(None)
+        batch = self._sdo_batch([Access(self.node_id, index, sub) for index, sub in others],
+                                timeout)
+        done: Future = Future()
+
+        def keep(finished: Future) -> None:
+            with self._lock:
+                if self._held_reads != reads:  # read again meanwhile, or it booted
+                    answer(done, None)
+                    return
+                self._held = {key: bytes(result.data) for key, result
+                              in zip(others, finished.result(), strict=True) if result.success}
+                if len(self._held) < len(others):
+                    self._held_reads = -1  # a read failed: tried again at the next poll
+            answer(done, None)
+        batch.add_done_callback(keep)
+        return done
 
     def know_commanded(self, values: Dict[int, int]) -> None:
         """Take the commanded objects among ``values`` (an initial read) as the drive's now."""
@@ -251,7 +297,9 @@ class DriveObjects:
         if self.node_id not in self._pdo.node_ids or not self._operational():
             return plan(indexes, (), controlword_known)
         _, rpdos = self._pdo.mappings(self.node_id)
-        return plan(indexes, usable_frames(rpdos, commanded, self._sync_producing()),
+        with self._lock:
+            held = dict(self._held)
+        return plan(indexes, usable_frames(rpdos, commanded, self._sync_producing(), held),
                     controlword_known)
 
 

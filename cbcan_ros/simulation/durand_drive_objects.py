@@ -26,6 +26,7 @@ VELOCITY_ACTUAL = 0x606C
 POSITION_WINDOW = 0x6067
 SOFTWARE_POSITION_LIMIT = 0x607D
 TARGET_TORQUE = 0x6071
+MAX_TORQUE = 0x6072
 TORQUE_ACTUAL = 0x6077
 TARGET_POSITION = 0x607A
 HOME_OFFSET = 0x607C
@@ -61,6 +62,7 @@ OBJECTS = (
     (VELOCITY_ACTUAL, DT.INTEGER32, 'ro', 0, 'Velocity actual value'),
     (POSITION_WINDOW, DT.UNSIGNED32, 'rw', 10, 'Position window'),
     (TARGET_TORQUE, DT.INTEGER16, 'rw', 0, 'Target torque'),
+    (MAX_TORQUE, DT.UNSIGNED16, 'rw', 1000, 'Max torque'),
     (TORQUE_ACTUAL, DT.INTEGER16, 'ro', 0, 'Torque actual value'),
     (TARGET_POSITION, DT.INTEGER32, 'rw', 0, 'Target position'),
     (HOME_OFFSET, DT.INTEGER32, 'rw', 0, 'Home offset'),
