@@ -293,8 +293,12 @@ class Canopen402:
         wait_until(lambda: self.node.tpdo_values.get(0x6041), START_TIMEOUT,
                    'a statusword in a TPDO')
         self.node.op_mode = 'CYCLIC SYNCHRONOUS VELOCITY'
-        if self.node.op_mode != 'CYCLIC SYNCHRONOUS VELOCITY':
-            raise RuntimeError(f'BaseNode402 did not set CSV: {self.node.op_mode}')
+        # The mode shown comes in a TPDO: on a layout that sends it on change, a moment later.
+        try:
+            wait_until(lambda: self.node.op_mode == 'CYCLIC SYNCHRONOUS VELOCITY', 5.0,
+                       'BaseNode402 showing CSV')
+        except RuntimeError:
+            raise RuntimeError(f'BaseNode402 did not set CSV: {self.node.op_mode}') from None
 
     def enable(self) -> None:
         """Enable the drive as BaseNode402 does (it raises RuntimeError on a timeout)."""
