@@ -85,7 +85,7 @@ class DeviceHost:
         if STATE_DEVICE in self.nodes:
             self.nodes[STATE_DEVICE].sdo[0x1017].raw = STATE_DEVICE_HEARTBEAT_MS
         if self.durand_id is not None:
-            durand_device, = import_retrying('cbcan_ros.simulation.durand_device')
+            durand_device, = import_retrying('cbcan_ros.simulation.durand.device')
             options = {k: v for k, v in self._bus.items() if k not in ('interface', 'channel')}
             self.durand = durand_device.DurandDevice(
                 self.durand_id, self._bus['interface'], self._bus['channel'], options)

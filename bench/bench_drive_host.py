@@ -155,8 +155,8 @@ class SharedUdpBus(can.BusABC):
 
 def run_drives(args, bus_options: Dict) -> None:
     """Host simulated drives ``--nodes`` until told to stop (``--shared-socket``: on one)."""
-    drive_module, pdo_module = import_retrying('cbcan_ros.simulation.durand_drive',
-                                               'cbcan_ros.simulation.durand_drive_pdos')
+    drive_module, pdo_module = import_retrying('cbcan_ros.simulation.durand.drive',
+                                               'cbcan_ros.simulation.durand.drive_pdos')
     pdos = (pdo_module.default_drive_pdos(args.transmission_type) if args.transmission_type
             else pdo_module.drive_pdos(args.layout))
     shared = None

@@ -292,13 +292,11 @@ class Canopen402:
                    'the BaseNode402 drive OPERATIONAL')
         wait_until(lambda: self.node.tpdo_values.get(0x6041), START_TIMEOUT,
                    'a statusword in a TPDO')
-        self.node.op_mode = 'CYCLIC SYNCHRONOUS VELOCITY'
-        # The mode shown comes in a TPDO: on a layout that sends it on change, a moment later.
-        try:
-            wait_until(lambda: self.node.op_mode == 'CYCLIC SYNCHRONOUS VELOCITY', 5.0,
-                       'BaseNode402 showing CSV')
-        except RuntimeError:
-            raise RuntimeError(f'BaseNode402 did not set CSV: {self.node.op_mode}') from None
+        # The mode is set by SDO and read back by SDO: BaseNode402's op_mode setter swallows
+        # its errors, and its getter trusts a TPDO value it may not have taken yet (on the
+        # vendor layout it showed NO MODE for good). Only the enable is measured.
+        self.node.sdo[0x6060].raw = CSV
+        wait_until(lambda: self.node.sdo[0x6061].raw == CSV, 5.0, 'the drive in CSV')
 
     def enable(self) -> None:
         """Enable the drive as BaseNode402 does (it raises RuntimeError on a timeout)."""

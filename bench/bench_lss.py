@@ -22,7 +22,7 @@ from bench_report import machine_info
 from bench_util import logs_to, OUTPUT
 
 from cbcan_ros.core.gateway import Gateway, GatewayConfig
-from cbcan_ros.simulation.durand_device import DurandDevice
+from cbcan_ros.simulation.durand.device import DurandDevice
 
 VENDOR, PRODUCT, REVISION = 0x319, 0x51, 0x10000
 NONE_TARGET = 0.5

@@ -46,7 +46,7 @@ PDOS = None  # set in main() once the package is importable
 
 
 def _devices(node_ids, interface, channel, options=None):
-    from cbcan_ros.simulation.durand_device import DurandDevice
+    from cbcan_ros.simulation.durand.device import DurandDevice
     devices = [DurandDevice(node_id, interface, channel, bus_options=options, pdos=PDOS)
                for node_id in node_ids]
     for device in devices:
@@ -315,7 +315,7 @@ def main(argv=None) -> int:
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     import rclpy
 
-    from cbcan_ros.simulation.durand_pdos import PdoConfig
+    from cbcan_ros.simulation.durand.pdos import PdoConfig
     global PDOS
     PDOS = (PdoConfig('tpdo', 1, ((0x2002, 0), (0x2003, 0)), 255),
             PdoConfig('tpdo', 2, ((0x2002, 0), (0x2003, 0)), 255),

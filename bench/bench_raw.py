@@ -263,7 +263,7 @@ def run_flood(group: str, port: int, seconds: float) -> int:
 
 def run_device(group: str, port: int) -> int:
     """Run simulated device 2 on ``udp_multicast`` until SIGTERM (``--device``)."""
-    from cbcan_ros.simulation.durand_device import DurandDevice
+    from cbcan_ros.simulation.durand.device import DurandDevice
     device = DurandDevice(2, interface='udp_multicast', channel=group,
                           bus_options={'port': port})
     device.start()

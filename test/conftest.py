@@ -295,7 +295,7 @@ def start_durand():
     durand is the independent device stack (``DurandDevice`` and its options; ``kind`` may be
     a subclass, such as the drive); every device the factory started is stopped after the test.
     """
-    from cbcan_ros.simulation.durand_device import DurandDevice
+    from cbcan_ros.simulation.durand.device import DurandDevice
     started = []
 
     def factory(node_id: int, kind=DurandDevice, **options):

@@ -3,7 +3,7 @@
 from canopen.sdo.exceptions import SdoAbortedError
 import pytest
 
-from cbcan_ros.core import abort_codes
+from cbcan_ros.core.sdo import abort_codes
 
 FATEK_TABLE = {  # the Fatek CBCAN document's table 3
     0x05040000, 0x06020000, 0x06010002, 0x06040047, 0x06010000, 0x06070010, 0x05040001,

@@ -17,7 +17,7 @@ import pytest
 from cbcan_ros.core.gateway import Gateway, GatewayConfig
 from cbcan_ros.msg import NodeStates
 from cbcan_ros.ros.interface import NODE_STATES_QOS
-from cbcan_ros.simulation.durand_dictionary import DOMAIN_DEFAULT, DOMAIN_INDEX
+from cbcan_ros.simulation.durand.dictionary import DOMAIN_DEFAULT, DOMAIN_INDEX
 from cbcan_ros.srv import NmtState, SdoRead, SdoWrite
 
 from conftest import new_channel, wait_until

@@ -14,7 +14,7 @@ import pytest
 
 from cbcan_ros.msg import LssIdentity
 from cbcan_ros.simulation.canopen_device import SimulatedDevice
-from cbcan_ros.simulation.durand_device import DurandDevice
+from cbcan_ros.simulation.durand.device import DurandDevice
 
 from conftest import HEAVY, new_channel, wait_for_future, wait_until
 import faulty_bus

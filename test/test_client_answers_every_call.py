@@ -15,13 +15,7 @@ import rclpy
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
 from cbcan_ros.core.values import decode_value, encode
-from cbcan_ros.ros.client import (
-    GatewayClient,
-    GatewayUnavailable,
-    Read,
-    RequestFailed,
-    Write,
-)
+from cbcan_ros.ros.client import GatewayClient, GatewayUnavailable, Read, RequestFailed, Write
 
 from conftest import new_channel, Spinning, wait_until
 from node_process import NodeProcess, START_TIMEOUT

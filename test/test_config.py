@@ -337,3 +337,18 @@ def test_unknown_can_interface_stops_the_node_at_start(start_node):
     output = gateway.output()
     assert status == 1, output
     assert 'can.interface' in output and 'Traceback' not in output, output
+
+
+def test_a_canopen_release_other_than_the_supported_one_stops_the_gateway_naming_both(
+        monkeypatch):
+    import canopen
+
+    from cbcan_ros.core.canopen_gaps import version_problem
+    from cbcan_ros.core.gateway import Gateway, GatewayConfig
+    assert version_problem() == ''  # the one installed here (requirements.txt pins it)
+    monkeypatch.setattr(canopen, '__version__', '2.5.0')
+    with pytest.raises(RuntimeError) as refused:
+        Gateway(GatewayConfig())
+    assert 'canopen 2.5.0 is installed' in str(refused.value)
+    assert 'canopen 2.4.x only' in str(refused.value)
+    assert "pip install 'canopen==2.4.1'" in str(refused.value)

@@ -8,7 +8,7 @@ import random
 import threading
 import time
 
-from cbcan_ros.core.request_queue import Deadlines
+from cbcan_ros.core.sdo.request_queue import Deadlines
 
 from conftest import wait_until
 

@@ -14,7 +14,7 @@ from test_diagnostics import describe, DiagnosticsRecorder, values
 
 from cbcan_ros.msg import Emcy
 from cbcan_ros.ros.emcy import EMCY_QOS
-from cbcan_ros.simulation.durand_device import DurandDevice
+from cbcan_ros.simulation.durand.device import DurandDevice
 from cbcan_ros.srv import SdoRead
 
 from conftest import wait_until

@@ -60,6 +60,7 @@ SCRIPT_TIMEOUT = 120.0
 
 # A piece of the block that names it: why it does not run here.
 NOT_RUN = {
+    'drives/              service.py (DriveService)': 'a picture of the package tree, not code',
     'git clone <this repository>': 'a ROS 2 workspace: rosdep, colcon on a ROS install and '
                                    'the ros2 CLI are not on this machine (make colcon-smoke '
                                    'builds and runs the package as such a workspace does)',

@@ -18,7 +18,7 @@ import pytest
 from std_msgs.msg import Float64
 from test_drives import CSP, CSV, NODE, PDOS, PP, Rig, WAIT
 
-from cbcan_ros.core import cia402
+from cbcan_ros.core.drives import cia402
 from cbcan_ros.core.nmt import NOT_DETECTED
 
 from conftest import wait_for_future, wait_until

@@ -18,8 +18,8 @@ import pytest
 from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.cli import build_parser, Client, run
 from cbcan_ros.ros.drives import STATE_QOS
-from cbcan_ros.simulation.durand_drive import DurandDrive
-from cbcan_ros.simulation.durand_drive_pdos import default_drive_pdos
+from cbcan_ros.simulation.durand.drive import DurandDrive
+from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
 
 from conftest import Harness, new_channel, wait_until
 from node_process import executable

@@ -23,8 +23,9 @@ import threading
 from test_drive_bus_faults import hold_next_answer
 from test_drives import CSV, NODE, PDOS, rig, WAIT, watch  # noqa: F401 - rig: a fixture
 
-from cbcan_ros.core import cia402, drive_cycle
-from cbcan_ros.core.pdo_parameters import PdoParameters
+from cbcan_ros.core.drives import cia402
+from cbcan_ros.core.drives import cycle as drive_cycle
+from cbcan_ros.core.pdo.parameters import PdoParameters
 
 from conftest import wait_until
 

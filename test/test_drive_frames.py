@@ -7,9 +7,9 @@ no synchronous frame before an event-driven controlword frame.
 
 import pytest
 
-from cbcan_ros.core import cia402
-from cbcan_ros.core.drive_frames import Frame, frame_values, plan, usable_frames
-from cbcan_ros.core.pdo_mapping import MappedEntry, PdoMapping
+from cbcan_ros.core.drives import cia402
+from cbcan_ros.core.drives.frames import Frame, frame_values, plan, usable_frames
+from cbcan_ros.core.pdo.mapping import MappedEntry, PdoMapping
 
 CW, MODE, TARGET = cia402.CONTROLWORD, cia402.MODE, cia402.TARGET_POSITION
 VELOCITY, TORQUE = cia402.TARGET_VELOCITY, cia402.TARGET_TORQUE

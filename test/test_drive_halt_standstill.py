@@ -13,10 +13,10 @@ import pytest
 from std_msgs.msg import Float64
 from test_drives import CSV, NODE, rig, WAIT, watch  # noqa: F401 - rig: a fixture used by name
 
-from cbcan_ros.core import drive_cycle
-from cbcan_ros.core.drive_standstill import shows_standing
-from cbcan_ros.simulation.durand_drive_objects import POSITION_ACTUAL, PROFILE_ACCELERATION
-from cbcan_ros.simulation.durand_drive_pdos import (
+from cbcan_ros.core.drives import cycle as drive_cycle
+from cbcan_ros.core.drives.standstill import shows_standing
+from cbcan_ros.simulation.durand.drive_objects import POSITION_ACTUAL, PROFILE_ACCELERATION
+from cbcan_ros.simulation.durand.drive_pdos import (
     COMMAND,
     default_drive_pdos,
     EVENT_DRIVEN,
@@ -25,7 +25,7 @@ from cbcan_ros.simulation.durand_drive_pdos import (
     STATUS,
     TIMER_DRIVEN,
 )
-from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.simulation.durand.pdos import PdoConfig
 
 from conftest import wait_until
 

@@ -19,9 +19,9 @@ import test_drives
 from test_drives import CSP, CST, CSV, HOMING, NODE, PP, PV, SCALE, WAIT, watch
 
 from cbcan_ros.action import DriveMove
-from cbcan_ros.core import cia402
+from cbcan_ros.core.drives import cia402
 from cbcan_ros.core.nmt import OPERATIONAL
-from cbcan_ros.simulation.durand_drive_objects import (
+from cbcan_ros.simulation.durand.drive_objects import (
     HOME_OFFSET,
     MAX_TORQUE,
     PROFILE_VELOCITY,
@@ -29,7 +29,7 @@ from cbcan_ros.simulation.durand_drive_objects import (
     TARGET_POSITION,
     TARGET_VELOCITY,
 )
-from cbcan_ros.simulation.durand_drive_pdos import drive_pdos as layout_pdos
+from cbcan_ros.simulation.durand.drive_pdos import drive_pdos as layout_pdos
 from cbcan_ros.simulation.simulated_drives import LAYOUTS
 
 from conftest import wait_for_future, wait_until

@@ -24,8 +24,8 @@ from hypothesis import strategies as st
 import pytest
 from test_drives import NODE, Rig
 
-from cbcan_ros.core import cia402
-from cbcan_ros.core.drive_checks import (
+from cbcan_ros.core.drives import cia402
+from cbcan_ros.core.drives.checks import (
     command_problem,
     COMMANDS,
     integer_problem,
@@ -34,8 +34,8 @@ from cbcan_ros.core.drive_checks import (
     state_problem,
     value_problem,
 )
-from cbcan_ros.core.drive_status import DriveStatus
-from cbcan_ros.core.sdo import MAX_TIMEOUT
+from cbcan_ros.core.drives.status import DriveStatus
+from cbcan_ros.core.sdo.requests import MAX_TIMEOUT
 from cbcan_ros.simulation import cia402_states as sim
 
 from conftest import wait_until

@@ -11,7 +11,7 @@ import struct
 import test_drives
 from test_drives import CSV, WAIT
 
-from cbcan_ros.simulation.durand_drive_objects import ABORT_CONNECTION_OPTION, CONSUMER_HEARTBEAT
+from cbcan_ros.simulation.durand.drive_objects import ABORT_CONNECTION_OPTION, CONSUMER_HEARTBEAT
 
 from conftest import wait_until
 

@@ -29,10 +29,10 @@ from std_msgs.msg import Float64
 from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.ros.node import SHUTDOWN_LIMIT
-from cbcan_ros.simulation.durand_drive import DurandDrive
-from cbcan_ros.simulation.durand_drive_pdos import default_drive_pdos
-from cbcan_ros.simulation.durand_drive_pdos import drive_pdos as layout_pdos
-from cbcan_ros.simulation.durand_scheduler import shared_scheduler
+from cbcan_ros.simulation.durand.drive import DurandDrive
+from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
+from cbcan_ros.simulation.durand.drive_pdos import drive_pdos as layout_pdos
+from cbcan_ros.simulation.durand.scheduler import shared_scheduler
 from cbcan_ros.simulation.simulated_drives import LAYOUTS
 from cbcan_ros.srv import DriveCommand, NmtCommand
 

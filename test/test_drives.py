@@ -20,13 +20,13 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
 from cbcan_ros.action import DriveMove
-from cbcan_ros.core import drive_commands
+from cbcan_ros.core.drives import commands as drive_commands
 from cbcan_ros.core.nmt import OPERATIONAL
 from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
-from cbcan_ros.simulation.durand_drive import DurandDrive
-from cbcan_ros.simulation.durand_drive_objects import PROFILE_ACCELERATION, QUICK_STOP_OPTION
-from cbcan_ros.simulation.durand_drive_pdos import default_drive_pdos
+from cbcan_ros.simulation.durand.drive import DurandDrive
+from cbcan_ros.simulation.durand.drive_objects import PROFILE_ACCELERATION, QUICK_STOP_OPTION
+from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
 
 from conftest import Harness, new_channel, wait_for_future, wait_until
 

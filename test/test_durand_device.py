@@ -17,8 +17,8 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 import durand
 import pytest
 
-from cbcan_ros.simulation.durand_device import DurandDevice
-from cbcan_ros.simulation.durand_scheduler import shared_scheduler
+from cbcan_ros.simulation.durand.device import DurandDevice
+from cbcan_ros.simulation.durand.scheduler import shared_scheduler
 
 from conftest import wait_until
 

@@ -10,7 +10,7 @@ import threading
 import can
 import pytest
 
-from cbcan_ros.core.sdo import Access
+from cbcan_ros.core.sdo.requests import Access
 from cbcan_ros.msg import Emcy
 from cbcan_ros.ros.emcy import EMCY_QOS
 

@@ -28,7 +28,7 @@ from cbcan_ros.core.bus import BusDown
 from cbcan_ros.core.heartbeat_producer import HeartbeatProducer, next_beat
 from cbcan_ros.ros.config import NodeParameters
 from cbcan_ros.ros.parameter_checks import ConfigurationError
-from cbcan_ros.simulation.durand_drive import DurandDrive
+from cbcan_ros.simulation.durand.drive import DurandDrive
 from cbcan_ros.srv import SdoWrite
 
 from conftest import wait_until

@@ -14,7 +14,7 @@ import can
 import pytest
 
 from cbcan_ros.msg import LssIdentity
-from cbcan_ros.simulation.durand_device import DurandDevice
+from cbcan_ros.simulation.durand.device import DurandDevice
 
 from conftest import wait_for_future, wait_until
 

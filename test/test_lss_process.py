@@ -12,7 +12,7 @@ import pytest
 from cbcan_ros.msg import NodeStates
 from cbcan_ros.ros.cli import build_parser, Client, run
 from cbcan_ros.ros.interface import NODE_STATES_QOS
-from cbcan_ros.simulation.durand_device import DurandDevice
+from cbcan_ros.simulation.durand.device import DurandDevice
 
 from conftest import wait_until
 from node_process import executable, private_bus, START_TIMEOUT

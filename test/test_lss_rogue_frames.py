@@ -23,7 +23,7 @@ import pytest
 from test_fuzz import Problems
 
 from cbcan_ros.msg import LssIdentity
-from cbcan_ros.simulation.durand_device import DurandDevice
+from cbcan_ros.simulation.durand.device import DurandDevice
 
 from conftest import HEAVY, wait_for_future, wait_until
 

@@ -13,8 +13,8 @@ import time
 import can
 import pytest
 
-from cbcan_ros.core.request_queue import resolved
-from cbcan_ros.core.sdo import SdoResult
+from cbcan_ros.core.sdo.request_queue import resolved
+from cbcan_ros.core.sdo.requests import SdoResult
 from cbcan_ros.plc.mailbox import Mailbox
 
 from conftest import wait_until

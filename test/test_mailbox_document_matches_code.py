@@ -11,9 +11,10 @@ import re
 
 import pytest
 
-from cbcan_ros.core import abort_codes, nmt
-from cbcan_ros.core.request_queue import resolved
-from cbcan_ros.core.sdo import SdoResult
+from cbcan_ros.core import nmt
+from cbcan_ros.core.sdo import abort_codes
+from cbcan_ros.core.sdo.request_queue import resolved
+from cbcan_ros.core.sdo.requests import SdoResult
 from cbcan_ros.plc import mailbox
 from cbcan_ros.plc.mailbox import Cbcan, Mailbox, Me3can
 

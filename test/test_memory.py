@@ -6,8 +6,8 @@ import threading
 import weakref
 
 from cbcan_ros.core.gateway import Gateway, GatewayConfig
-from cbcan_ros.core.request_queue import Deadlines
-from cbcan_ros.simulation.durand_device import DurandDevice
+from cbcan_ros.core.sdo.request_queue import Deadlines
+from cbcan_ros.simulation.durand.device import DurandDevice
 
 from conftest import new_channel, wait_until
 

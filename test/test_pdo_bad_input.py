@@ -18,13 +18,13 @@ from hypothesis import given, HealthCheck, settings
 from hypothesis import strategies as st
 import pytest
 
-from cbcan_ros.core.pdo import PdoService
-from cbcan_ros.core.pdo_mapping import decode, EntryValue, MAX_BITS, parse_mapping, ReceivedPdo
-from cbcan_ros.core.write_protection import WriteProtection
+from cbcan_ros.core.pdo.mapping import decode, EntryValue, MAX_BITS, parse_mapping, ReceivedPdo
+from cbcan_ros.core.pdo.service import PdoService
+from cbcan_ros.core.sdo.write_protection import WriteProtection
 from cbcan_ros.msg import Pdo, PdoEntry
 from cbcan_ros.ros.pdo import pdo_message, PDO_QOS
-from cbcan_ros.simulation.durand_device import DurandDevice
-from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.simulation.durand.device import DurandDevice
+from cbcan_ros.simulation.durand.pdos import PdoConfig
 
 from conftest import new_channel, wait_for_future, wait_until
 from node_process import EDS

@@ -11,8 +11,8 @@ import threading
 import pytest
 
 from cbcan_ros.msg import PdoEntry
-from cbcan_ros.simulation.durand_device import DurandDevice
-from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.simulation.durand.device import DurandDevice
+from cbcan_ros.simulation.durand.pdos import PdoConfig
 
 from conftest import new_channel, wait_for_future, wait_until
 import faulty_bus

@@ -15,7 +15,7 @@ from test_diagnostics import DiagnosticsRecorder, values
 
 from cbcan_ros.msg import Pdo, PdoEntry
 from cbcan_ros.ros.pdo import PDO_QOS
-from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.simulation.durand.pdos import PdoConfig
 from cbcan_ros.srv import NmtCommand, PdoWrite
 
 from conftest import wait_until

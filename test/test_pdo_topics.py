@@ -15,8 +15,8 @@ import pytest
 
 from cbcan_ros.msg import Pdo, PdoEntry
 from cbcan_ros.ros.pdo import PDO_QOS
-from cbcan_ros.simulation.durand_device import DurandDevice
-from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.simulation.durand.device import DurandDevice
+from cbcan_ros.simulation.durand.pdos import PdoConfig
 
 from conftest import new_channel, wait_until
 from node_process import EDS

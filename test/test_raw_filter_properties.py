@@ -17,15 +17,9 @@ from hypothesis import strategies as st
 import pytest
 
 from cbcan_ros.core.bus import BusStatus
-from cbcan_ros.core.raw_filters import parse_filters
-from cbcan_ros.core.raw_frames import (
-    canopen_ids,
-    FIXED_CANOPEN_IDS,
-    Frame,
-    RawFrames,
-    RawSettings,
-)
-from cbcan_ros.core.write_protection import WriteProtection
+from cbcan_ros.core.raw.filters import parse_filters
+from cbcan_ros.core.raw.frames import canopen_ids, FIXED_CANOPEN_IDS, Frame, RawFrames, RawSettings
+from cbcan_ros.core.sdo.write_protection import WriteProtection
 
 PROPERTIES = settings(max_examples=300, deadline=None, database=None,
                       suppress_health_check=[HealthCheck.too_slow])

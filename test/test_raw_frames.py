@@ -44,7 +44,7 @@ from node_process import (
 
 faulty_bus.register()
 
-RAW_LOGGER = 'cbcan_ros.core.raw_frames'
+RAW_LOGGER = 'cbcan_ros.core.raw.frames'
 # Ids no CANopen service of the gateway uses: the raw devices of these tests.
 RAW_IDS = range(0x7F0, 0x7FF)  # 0x7F0..0x7FE
 EXTENDED = 0x18FF0000

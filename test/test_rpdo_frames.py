@@ -13,9 +13,9 @@ when the SYNC comes and when a frame is on its way out.
 import threading
 
 from cbcan_ros.core.nmt import BOOT_UP, HEARTBEAT_COB_BASE
-from cbcan_ros.core.pdo import PdoService
-from cbcan_ros.core.pdo_mapping import EntryValue, parse_mapping
-from cbcan_ros.core.write_protection import WriteProtection
+from cbcan_ros.core.pdo.mapping import EntryValue, parse_mapping
+from cbcan_ros.core.pdo.service import PdoService
+from cbcan_ros.core.sdo.write_protection import WriteProtection
 
 NODE = 7
 COB_ID = 0x200 + NODE

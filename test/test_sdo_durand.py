@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import can
 import pytest
 
-from cbcan_ros.simulation.durand_device import DurandDevice
+from cbcan_ros.simulation.durand.device import DurandDevice
 
 from conftest import Harness, HEAVY, wait_for_future, wait_until
 

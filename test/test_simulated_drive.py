@@ -14,8 +14,8 @@ import can
 import pytest
 from test_durand_device import next_frame
 
-from cbcan_ros.simulation.durand_drive import DurandDrive
-from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.simulation.durand.drive import DurandDrive
+from cbcan_ros.simulation.durand.pdos import PdoConfig
 
 from conftest import Harness, wait_until
 

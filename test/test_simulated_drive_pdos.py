@@ -15,15 +15,15 @@ import pytest
 from test_pdo_topics import Recorder, values
 
 from cbcan_ros.msg import PdoEntry
-from cbcan_ros.simulation.durand_drive import DurandDrive
-from cbcan_ros.simulation.durand_drive_pdos import (
+from cbcan_ros.simulation.durand.drive import DurandDrive
+from cbcan_ros.simulation.durand.drive_pdos import (
     COMMAND,
     default_drive_pdos,
     MOTION,
     SET_POINTS,
     STATUS,
 )
-from cbcan_ros.simulation.durand_pdos import PdoConfig
+from cbcan_ros.simulation.durand.pdos import PdoConfig
 from cbcan_ros.simulation.simulated_drives import simulated_drives
 
 from conftest import wait_until

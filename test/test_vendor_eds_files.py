@@ -21,7 +21,7 @@ from test_lifecycle import Managed
 
 from cbcan_ros.core import eds
 from cbcan_ros.ros.cli import build_parser, Client, run
-from cbcan_ros.simulation.durand_device import DurandDevice
+from cbcan_ros.simulation.durand.device import DurandDevice
 
 from conftest import new_channel, wait_until
 from node_process import executable, START_TIMEOUT

@@ -16,25 +16,27 @@ import can
 import canopen
 from canopen import objectdictionary as od
 
-from . import abort_codes, eds, nmt
+from . import eds, nmt
 from .bus import BusDown, BusStatus, BusSupervisor
+from .canopen_gaps import version_problem
 from .canopen_gaps.local_node import without_heartbeat_producer
 from .canopen_gaps.sdo_client import StrictSdoClient
-from .drive import DriveService
-from .drive_status import DriveSettings
+from .drives.service import DriveService
+from .drives.status import DriveSettings
 from .emcy import EmcyMonitor
 from .heartbeat_producer import HeartbeatProducer
-from .lss_frames import is_all_waiting, probe_wait
-from .lss_master import LssMaster
-from .pdo import PdoService
-from .raw_frames import canopen_ids, echoes, RawFrames, RawSettings
+from .lss.frames import is_all_waiting, probe_wait
+from .lss.master import LssMaster
+from .pdo.service import PdoService
+from .pdo.sync import SyncProducer
+from .raw.frames import canopen_ids, echoes, RawFrames, RawSettings
 from .receive_buffer import deepen_receive_buffer
-from .request_queue import Deadlines, resolved
-from .sdo import Access, batch_refusal, check_node_id, one_each, refusal, SdoResult
-from .sdo_channel import SdoChannel, SdoStatistics
-from .sdo_transfer import run_local
-from .sync import SyncProducer
-from .write_protection import WriteProtection
+from .sdo import abort_codes
+from .sdo.channel import SdoChannel, SdoStatistics
+from .sdo.request_queue import Deadlines, resolved
+from .sdo.requests import Access, batch_refusal, check_node_id, one_each, refusal, SdoResult
+from .sdo.transfer import run_local
+from .sdo.write_protection import WriteProtection
 
 LOGGER = logging.getLogger(__name__)
 
@@ -141,6 +143,9 @@ class Gateway:
     """
 
     def __init__(self, config: GatewayConfig):
+        problem = version_problem()
+        if problem:  # canopen_gaps would patch internals this release may not have
+            raise RuntimeError(problem)
         self.config = config
         self.network = canopen.Network()
         self.bus = BusSupervisor(self.network, self._open_bus,

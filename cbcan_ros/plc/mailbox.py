@@ -13,8 +13,9 @@ Data bytes are packed into registers little-endian: byte 2k is the low byte of w
 
 import logging
 
-from ..core import abort_codes, nmt
-from ..core.sdo import MAX_NODE_ID
+from ..core import nmt
+from ..core.protocol import MAX_NODE_ID
+from ..core.sdo import abort_codes
 from ..core.text import quoted
 
 LOGGER = logging.getLogger(__name__)

@@ -24,7 +24,7 @@ from typing import NamedTuple, Optional, Sequence, Union
 
 from rclpy.node import Node
 
-from ..core.sdo import MAX_TIMEOUT
+from ..core.sdo.requests import MAX_TIMEOUT
 from ..core.values import check_type, decode_value, encode, Value
 from ..msg import NodeStates, SdoAccess
 from ..srv import NmtCommand, NmtState, SdoBatch, SdoRead, SdoWrite

@@ -14,7 +14,7 @@ from rclpy.parameter import Parameter
 
 from ..core import eds
 from ..core.gateway import GatewayConfig
-from ..core.write_protection import RULE_FORMAT, WriteProtection
+from ..core.sdo.write_protection import RULE_FORMAT, WriteProtection
 from ..simulation.simulated_drives import LAYOUTS
 from . import drive_parameters, raw_parameters
 from . import parameter_checks as checks

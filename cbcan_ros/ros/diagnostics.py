@@ -20,15 +20,15 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..core import cia402
 from ..core.bus import BusStatus
-from ..core.drive_status import DriveStatus
+from ..core.drives import cia402
+from ..core.drives.status import DriveStatus
 from ..core.emcy import EmcyStatus, Emergency
 from ..core.gateway import Gateway
 from ..core.nmt import NodeStatus
-from ..core.pdo import PdoStatistics
-from ..core.sdo_channel import SdoStatistics
-from ..core.sync import SyncStatus
+from ..core.pdo.service import PdoStatistics
+from ..core.pdo.sync import SyncStatus
+from ..core.sdo.channel import SdoStatistics
 from .drive_parameters import Joint
 
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,

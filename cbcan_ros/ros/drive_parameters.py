@@ -1,7 +1,7 @@
 """The drive parameters: which devices run as CiA 402 drives, their joints, the safety stops.
 
 Declared with descriptors by :class:`~.config.NodeParameters`, checked here, and turned into
-the core's :class:`~cbcan_ros.core.drive_status.DriveSettings` and one :class:`Joint` per
+the core's :class:`~cbcan_ros.core.drives.status.DriveSettings` and one :class:`Joint` per
 drive, which converts between the drive's units and the joint's (radians or metres, as the
 robot description has them).
 """
@@ -12,9 +12,9 @@ from typing import Callable, Dict, List
 
 from rcl_interfaces.msg import FloatingPointRange
 
-from ..core import cia402
-from ..core.drive_safety import ABORT_CONNECTION, ON_SHUTDOWN
-from ..core.drive_status import DriveSettings
+from ..core.drives import cia402
+from ..core.drives.safety import ABORT_CONNECTION, ON_SHUTDOWN
+from ..core.drives.status import DriveSettings
 from .parameter_checks import ConfigurationError
 
 # The feedback cycle without SYNC: ~/joint_states at 50 Hz.

@@ -32,9 +32,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
 from ..action import DriveMove
-from ..core import cia402
-from ..core.drive import DriveService
-from ..core.drive_status import DriveResult, DriveStatus, failed
+from ..core.drives import cia402
+from ..core.drives.service import DriveService
+from ..core.drives.status import DriveResult, DriveStatus, failed
 from ..msg import DriveState
 from .drive_parameters import Joint
 from .pdo import stamp_of

@@ -25,10 +25,10 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from ..core.coroutine_runner import CoroutineRunner
 from ..core.gateway import Gateway, SHUTTING_DOWN
-from ..core.lss import Identity, LssResult
+from ..core.lss.requests import Identity, LssResult
 from ..core.nmt import state_name
-from ..core.request_queue import resolved
-from ..core.sdo import Access, check_node_id, SdoResult
+from ..core.sdo.request_queue import resolved
+from ..core.sdo.requests import Access, check_node_id, SdoResult
 from ..msg import LssIdentity, NodeState, NodeStates
 from ..msg import SdoResult as SdoResultMessage
 from ..plc.mailbox import Mailbox

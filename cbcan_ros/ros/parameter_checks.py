@@ -26,8 +26,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from ..core.bus import slcan_bitrates
+from ..core.sdo.write_protection import parse_rule, RULE_FORMAT, WriteRule
 from ..core.text import quoted
-from ..core.write_protection import parse_rule, RULE_FORMAT, WriteRule
 from .rclpy_gaps import parameter_overrides
 
 # How much of a wrong value a message shows: a parameter file may hold anything.

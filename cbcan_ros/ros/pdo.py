@@ -22,8 +22,8 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ..core.bus import wall_clock
-from ..core.pdo import PdoService
-from ..core.pdo_mapping import EntryValue, MAX_PDOS, PdoMapping, ReceivedPdo
+from ..core.pdo.mapping import EntryValue, MAX_PDOS, PdoMapping, ReceivedPdo
+from ..core.pdo.service import PdoService
 from ..msg import Pdo, PdoEntry
 
 LOGGER = logging.getLogger(__name__)

@@ -23,7 +23,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ..core.bus import wall_clock
-from ..core.raw_frames import Frame, RawFrames, Refusal
+from ..core.raw.frames import Frame, RawFrames, Refusal
 from ..srv import SendFrames
 from .pdo import QUEUE_LIMIT
 

@@ -12,8 +12,8 @@ from typing import Callable, List
 
 from rclpy.parameter import Parameter
 
-from ..core.raw_filters import FILTER_FORMAT, FrameFilters, parse_filters
-from ..core.raw_frames import RawSettings
+from ..core.raw.filters import FILTER_FORMAT, FrameFilters, parse_filters
+from ..core.raw.frames import RawSettings
 from .parameter_checks import ConfigurationError
 
 CAN_MSGS_INSTALL = ('sudo apt install ros-jazzy-can-msgs (rosdep installs it from package.xml), '

@@ -24,8 +24,8 @@ def simulated_drives(node_ids: List[int], warn: Callable[[str], None],
     ``warn`` says so and none is returned.
     """
     try:
-        from .durand_drive import DurandDrive
-        from .durand_drive_pdos import drive_pdos
+        from .durand.drive import DurandDrive
+        from .durand.drive_pdos import drive_pdos
     except ModuleNotFoundError as error:
         if error.name != 'durand':
             raise

@@ -46,8 +46,8 @@ from typing import Callable, Optional, Union
 from canopen.sdo.client import SdoClient, WritableStream
 from canopen.sdo.exceptions import SdoAbortedError
 
-from .. import abort_codes
 from ..bus import BusDown, prompt
+from ..sdo import abort_codes
 
 # Client command specifiers (CiA 301), top three bits of the first byte of a request.
 _CCS_DOWNLOAD_SEGMENT = 0

@@ -9,10 +9,11 @@ from typing import Dict, List, Optional
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
-from ...core import cia402
-from ...core.drive import DEFAULT_TIMEOUT, HOMING_TIMEOUT
-from ...core.drive_checks import COMMANDS
-from ...core.sdo import MAX_NODE_ID, MAX_TIMEOUT
+from ...core.drives import cia402
+from ...core.drives.checks import COMMANDS
+from ...core.drives.service import DEFAULT_TIMEOUT, HOMING_TIMEOUT
+from ...core.protocol import MAX_NODE_ID
+from ...core.sdo.requests import MAX_TIMEOUT
 from ...core.text import quoted
 from ...msg import DriveState
 from ...srv import DriveCommand
@@ -300,7 +301,7 @@ def add_commands(commands) -> None:
         'target', help='send one target to a drive in its present mode',
         description="Publish one target on the gateway's node_<id>/target topic: a position, "
                     "velocity or torque in the joint's units, as the drive's present mode "
-                    'takes it. In the streaming modes (PV, CSP, CSV, CST) the gateway halts '
+                    'takes it. In the streaming modes (PV, PT, CSP, CSV, CST) the gateway halts '
                     'the drive drives.command_timeout seconds after the last target: a single '
                     'target moves it that long only, unless the parameter is 0.')
     target.add_argument('node', type=node_argument, metavar='NODE', help='node id 1..127')

@@ -3,8 +3,8 @@
 import argparse
 import sys
 
-from ...core import lss
-from ...core.sdo import MAX_NODE_ID
+from ...core.lss import requests as lss
+from ...core.protocol import MAX_NODE_ID
 from ...core.text import quoted
 from ...msg import LssIdentity
 from ...srv import LssConfigure, LssInquire, LssScan

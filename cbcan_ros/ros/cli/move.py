@@ -10,7 +10,7 @@ from action_msgs.msg import GoalStatus
 from rclpy.action import ActionClient
 
 from ...action import DriveMove
-from ...core.drive_checks import NOTHING_SENT
+from ...core.drives.checks import NOTHING_SENT
 from ..service_caller import ANSWER_MARGIN, GatewayUnavailable
 from .drive import error_text, finite, node_argument
 from .standalone_client import Client

@@ -3,7 +3,7 @@
 import argparse
 import math
 
-from ...core.sdo import MAX_NODE_ID
+from ...core.protocol import MAX_NODE_ID
 from ...core.text import quoted
 from ...core.values import encode_value, parse_integer
 from ...msg import Pdo, PdoEntry

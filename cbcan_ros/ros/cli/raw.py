@@ -10,7 +10,7 @@ import re
 from typing import List, Optional
 
 from ...core.nmt import COMMAND_NAMES, reported_state_name
-from ...core.raw_filters import FILTER_FORMAT, parse_filters
+from ...core.raw.filters import FILTER_FORMAT, parse_filters
 from ...core.text import quoted
 from ...msg import CanFrame
 from ...srv import SendFrames

@@ -4,7 +4,7 @@ import argparse
 import sys
 from typing import List, Optional
 
-from ...core.sdo import MAX_TIMEOUT
+from ...core.sdo.requests import MAX_TIMEOUT
 from ...core.text import quoted
 from ...core.values import (
     data_type_name,

@@ -29,28 +29,20 @@ import threading
 import time
 from typing import Callable, Dict, List, Optional, Tuple
 
+from ..bus import prompt
+from ..coroutine_runner import CoroutineRunner
+from ..nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED
+from ..pdo.mapping import ReceivedPdo
+from ..sdo.request_queue import answer, resolved
+from ..sdo.requests import SdoResult
+from . import checks as checks
 from . import cia402
-from . import drive_checks as checks
-from . import drive_safety as safety
-from .bus import prompt
-from .coroutine_runner import CoroutineRunner
-from .drive_checks import SHUTTING_DOWN
-from .drive_commands import DriveCommands
-from .drive_cycle import FeedbackCycle, poll
-from .drive_objects import decode, DriveObjects, FEEDBACK
-from .drive_status import (
-    DriveRecord,
-    DriveResult,
-    DriveSettings,
-    DriveStatus,
-    failed,
-    shown,
-    updated,
-)
-from .nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED
-from .pdo_mapping import ReceivedPdo
-from .request_queue import answer, resolved
-from .sdo import SdoResult
+from . import safety as safety
+from .checks import SHUTTING_DOWN
+from .commands import DriveCommands
+from .cycle import FeedbackCycle, poll
+from .objects import decode, DriveObjects, FEEDBACK
+from .status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed, shown, updated
 
 LOGGER = logging.getLogger(__name__)
 

@@ -9,7 +9,7 @@ import threading
 from typing import Callable, Dict, List, Optional, Set, Tuple
 
 from . import cia402
-from .drive_objects import DriveObjects
+from .objects import DriveObjects
 
 
 @dataclass(frozen=True)

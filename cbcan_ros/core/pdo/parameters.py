@@ -16,7 +16,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 from canopen.objectdictionary import ObjectDictionary
 
-from .pdo_mapping import (
+from ..sdo.requests import Access
+from .mapping import (
     COB_INVALID,
     MAX_ENTRIES,
     MAX_PDOS,
@@ -27,7 +28,6 @@ from .pdo_mapping import (
     TPDO_COMMUNICATION,
     TPDO_MAPPING,
 )
-from .sdo import Access
 
 LOGGER = logging.getLogger(__name__)
 

@@ -8,10 +8,11 @@ that stops it.
 import math
 from typing import Callable, Dict, Optional
 
-from . import abort_codes, cia402
-from .drive_status import DriveRecord, DriveResult, DriveStatus, failed, shown
-from .sdo import check_node_id, MAX_TIMEOUT
-from .text import quoted
+from ..sdo import abort_codes
+from ..sdo.requests import check_node_id, MAX_TIMEOUT
+from ..text import quoted
+from . import cia402
+from .status import DriveRecord, DriveResult, DriveStatus, failed, shown
 
 COMMANDS = ('enable', 'disable', 'quick_stop', 'halt', 'resume', 'fault_reset', 'set_mode',
             'home')

@@ -12,7 +12,7 @@ import threading
 import time
 from typing import Callable, List
 
-from .drive_objects import FEEDBACK
+from .objects import FEEDBACK
 
 LOGGER = logging.getLogger(__name__)
 

@@ -28,9 +28,9 @@ from typing import AbstractSet, Callable, Deque, Dict, FrozenSet, List, Optional
 
 import can
 
-from .bus import BusDown, BusSupervisor
-from .raw_filters import exact_entry, EXTENDED_MASK, FrameFilters, STANDARD_MASK
-from .write_protection import WriteProtection
+from ..bus import BusDown, BusSupervisor
+from ..sdo.write_protection import WriteProtection
+from .filters import exact_entry, EXTENDED_MASK, FrameFilters, STANDARD_MASK
 
 LOGGER = logging.getLogger(__name__)
 

@@ -23,12 +23,12 @@ import struct
 import threading
 from typing import Callable, Dict, Iterable, List, Optional, Set, Tuple
 
+from ..pdo.mapping import EntryValue
+from ..pdo.service import PdoService
+from ..sdo.request_queue import answer, resolved
+from ..sdo.requests import Access, SdoResult
 from . import cia402
-from .drive_frames import Frame, frame_values, Plan, plan, usable_frames
-from .pdo import PdoService
-from .pdo_mapping import EntryValue
-from .request_queue import answer, resolved
-from .sdo import Access, SdoResult
+from .frames import Frame, frame_values, Plan, plan, usable_frames
 
 # Feedback objects: what the gateway reads of a drive, in TPDOs or by SDO.
 FEEDBACK = (cia402.STATUSWORD, cia402.MODE_DISPLAY, cia402.POSITION_ACTUAL,

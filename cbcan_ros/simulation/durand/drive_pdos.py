@@ -20,7 +20,8 @@ support must move the drive with each without configuring anything (named in
 
 from typing import Tuple
 
-from .durand_drive_objects import (
+from ..simulated_drives import LAYOUTS
+from .drive_objects import (
     CONTROLWORD,
     MODE,
     MODE_DISPLAY,
@@ -32,8 +33,7 @@ from .durand_drive_objects import (
     TORQUE_ACTUAL,
     VELOCITY_ACTUAL,
 )
-from .durand_pdos import PdoConfig
-from .simulated_drives import LAYOUTS
+from .pdos import PdoConfig
 
 # Transmission types (CiA 301). durand sends a TPDO of type 255 on every write of a mapped
 # object (the drive writes its objects only when they change) and one of type 254 only from its

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 from itertools import combinations
 from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
+from ..pdo.mapping import PdoMapping
 from . import cia402
-from .pdo_mapping import PdoMapping
 
 # Beyond this many candidate RPDOs the cover is chosen greedily (CiA 301 allows 512; drives
 # have 4 to 8).

@@ -2,7 +2,7 @@
 
 The device's transfers go through the strict client (``canopen_gaps``); the gateway's own
 dictionary (node 0) is read and written in place. Whatever either raises becomes an
-:class:`~cbcan_ros.core.sdo.SdoResult` here, and only here.
+:class:`~cbcan_ros.core.sdo.requests.SdoResult` here, and only here.
 """
 
 import logging
@@ -11,9 +11,8 @@ from typing import Callable, Optional
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from . import abort_codes
-from .bus import BusDown
-from .canopen_gaps.sdo_client import (
+from ..bus import BusDown
+from ..canopen_gaps.sdo_client import (
     close_without_frames,
     DownloadStream,
     StrictSdoClient,
@@ -21,7 +20,8 @@ from .canopen_gaps.sdo_client import (
     TransferCancelled,
     upload_finished,
 )
-from .sdo import Access, SdoResult
+from . import abort_codes
+from .requests import Access, SdoResult
 
 LOGGER = logging.getLogger(__name__)
 

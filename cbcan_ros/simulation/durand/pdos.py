@@ -15,7 +15,7 @@ from durand.datatypes import DatatypeEnum as DT
 from durand.object_dictionary import Variable
 from durand.services.pdo import tpdo as durand_tpdo
 
-from .durand_scheduler import shared_scheduler
+from .scheduler import shared_scheduler
 
 # 4 PDOs each way, the predefined connection set.
 PDOS = 4

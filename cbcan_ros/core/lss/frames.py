@@ -20,8 +20,8 @@ from typing import Optional
 
 from canopen import lss as cia305
 
-from .bus import BusDown, prompt
-from .lss import Identity, UNCONFIGURED
+from ..bus import BusDown, prompt
+from .requests import Identity, UNCONFIGURED
 
 MASTER_COB = cia305.LssMaster.LSS_TX_COBID  # 0x7E5, master to devices
 SLAVE_COB = cia305.LssMaster.LSS_RX_COBID   # 0x7E4, devices to master

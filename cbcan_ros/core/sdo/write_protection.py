@@ -7,7 +7,7 @@ stored to the application because of local control") and never reaches the bus.
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
-from .sdo import MAX_NODE_ID
+from ..protocol import MAX_NODE_ID
 
 RULE_FORMAT = ("'node:index' or 'node:first-last', node 0..127 or * for any node, "
                "indexes 0x0000..0xFFFF (e.g. '5:0x2000', '*:0x6040-0x60FF')")

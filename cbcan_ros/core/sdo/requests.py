@@ -1,19 +1,17 @@
 """SDO requests: what may be asked and what is answered, and the one check of a request.
 
 A request is checked by :func:`refusal` (a batch first by :func:`batch_refusal`) before the
-gateway routes it, to its own dictionary or to the device's channel (``sdo_channel``).
+gateway routes it, to its own dictionary or to the device's channel (``channel``).
 """
 
 from dataclasses import dataclass
 import math
-from typing import Optional, Sequence, TYPE_CHECKING
+from typing import Optional, Sequence
 
+from ..protocol import MAX_NODE_ID
 from . import abort_codes
+from .write_protection import WriteProtection
 
-if TYPE_CHECKING:
-    from .write_protection import WriteProtection
-
-MAX_NODE_ID = 127
 MAX_TIMEOUT = 60.0
 
 # The largest batch: enough for a full sweep of a device's objects, small enough that one
@@ -78,7 +76,7 @@ def one_each(result: SdoResult, count: Optional[int]):
 
 
 def refusal(access: Access, timeout: float,
-            protection: 'WriteProtection') -> Optional[SdoResult]:
+            protection: WriteProtection) -> Optional[SdoResult]:
     """Return the answer that refuses ``access`` before anything is sent, or None.
 
     Its fields first, then write protection, then ``timeout`` (which a batch's accesses

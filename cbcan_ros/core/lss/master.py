@@ -1,7 +1,7 @@
 """The gateway's LSS master (CiA 305): one operation at a time per bus, each answered once.
 
 One LSS operation runs at a time per bus, on a worker thread of its own; every call gets
-exactly one :class:`~cbcan_ros.core.lss.LssResult`, also when the bus goes down or the
+exactly one :class:`~cbcan_ros.core.lss.requests.LssResult`, also when the bus goes down or the
 gateway shuts down. Every operation starts and ends by switching every device to the LSS
 waiting state.
 """
@@ -15,8 +15,11 @@ from typing import Callable, Iterable, List, Optional, Set
 
 from canopen import lss as cia305
 
-from .bus import BusDown
-from .lss import (
+from ..bus import BusDown
+from ..protocol import MAX_NODE_ID
+from ..sdo.request_queue import answer, Deadlines, JobQueue, resolved
+from .frames import Cancelled, Disturbed, LssFrames
+from .requests import (
     BIT_TIMING,
     check_timeout,
     configure_problem,
@@ -28,9 +31,6 @@ from .lss import (
     UNCONFIGURED,
     WHAT,
 )
-from .lss_frames import Cancelled, Disturbed, LssFrames
-from .request_queue import answer, Deadlines, JobQueue, resolved
-from .sdo import MAX_NODE_ID
 
 LOGGER = logging.getLogger(__name__)
 

@@ -36,9 +36,9 @@ from durand.object_dictionary import Variable
 from durand.services.nmt import StateEnum
 from durand.services.sdo.server import SDODomainAbort, TransferState
 
-from ..core import nmt
-from ..core.receive_buffer import deepen_receive_buffer
-from .durand_dictionary import (
+from ...core import nmt
+from ...core.receive_buffer import deepen_receive_buffer
+from .dictionary import (
     ABORT_LENGTH_TOO_HIGH,
     add_objects,
     DOMAIN_INDEX,
@@ -49,9 +49,9 @@ from .durand_dictionary import (
     restore_defaults,
     SLOW_INDEX,
 )
-from .durand_network import BusNetwork
-from .durand_pdos import PdoConfig, PDOS, StoredPdos, TPDO_COMMUNICATION
-from .durand_scheduler import shared_scheduler
+from .network import BusNetwork
+from .pdos import PdoConfig, PDOS, StoredPdos, TPDO_COMMUNICATION
+from .scheduler import shared_scheduler
 
 EMCY_INHIBIT_INDEX = 0x1015
 COMMUNICATION_PROFILE = range(0x1000, 0x2000)

@@ -24,7 +24,7 @@ from typing import Callable, List, Optional
 
 import can
 
-from .bus import BusDown, BusStatus, BusSupervisor, prompt
+from ..bus import BusDown, BusStatus, BusSupervisor, prompt
 
 LOGGER = logging.getLogger(__name__)
 

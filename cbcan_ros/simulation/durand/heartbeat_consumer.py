@@ -7,9 +7,9 @@ consumer time, with a timer on the shared scheduler: nothing polls.
 
 from typing import Callable, Optional
 
-from ..core import nmt
-from .durand_network import BusNetwork
-from .durand_scheduler import shared_scheduler
+from ...core import nmt
+from .network import BusNetwork
+from .scheduler import shared_scheduler
 
 
 class HeartbeatConsumer:

@@ -14,10 +14,10 @@ import contextvars
 from typing import Callable, Dict, Optional
 
 from . import cia402
-from .drive_arrival import HOME_HERE, missed, outside_limits, position_window, software_limits
-from .drive_checks import ENABLED_COMMANDS, lost_problem, SHUTTING_DOWN, state_problem
-from .drive_standstill import wait_for_standstill
-from .drive_status import DriveResult
+from .arrival import HOME_HERE, missed, outside_limits, position_window, software_limits
+from .checks import ENABLED_COMMANDS, lost_problem, SHUTTING_DOWN, state_problem
+from .standstill import wait_for_standstill
+from .status import DriveResult
 
 # The timeout of each SDO a sequence sends (a PDO goes out without an answer).
 SEND_TIMEOUT = 1.0

@@ -3,7 +3,7 @@
 Every transfer runs on the worker thread of its device, so requests to one device are
 serialized (a device has one SDO server channel) while different devices run in parallel.
 Callers get a ``concurrent.futures.Future`` that always resolves to exactly one
-:class:`~cbcan_ros.core.sdo.SdoResult` (a list of them for a batch), within the request's
+:class:`~cbcan_ros.core.sdo.requests.SdoResult` (a list of them for a batch), within the request's
 timeout: also for a full queue, a lost bus and shutdown.
 """
 
@@ -15,11 +15,11 @@ import threading
 import time
 from typing import Callable, List, Optional, Sequence
 
+from ..canopen_gaps.sdo_client import StrictSdoClient, TransferAborted
 from . import abort_codes
-from .canopen_gaps.sdo_client import StrictSdoClient, TransferAborted
 from .request_queue import answer, Deadlines, JobQueue
-from .sdo import Access, one_each, SdoResult
-from .sdo_transfer import download, run_guarded, upload
+from .requests import Access, one_each, SdoResult
+from .transfer import download, run_guarded, upload
 
 # The p50 latency of a device is taken over its last this many successful accesses: a
 # bounded sample, so a long-running gateway holds a few kilobytes per device, not a history.

@@ -19,9 +19,9 @@ import struct
 import time
 from typing import Callable, Iterable
 
+from ..sdo.requests import Access
 from . import cia402
-from .drive_status import DriveRecord, DriveSettings
-from .sdo import Access
+from .status import DriveRecord, DriveSettings
 
 LOGGER = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ from durand.datatypes import DatatypeEnum as DT
 from durand.object_dictionary import Array, ObjectDictionary, Record, Variable
 from durand.services.sdo.server import SDODomainAbort
 
-from . import cia402_states as cia402
+from .. import cia402_states as cia402
 
 DEVICE_NAME = 0x1008
 CONSUMER_HEARTBEAT = 0x1016

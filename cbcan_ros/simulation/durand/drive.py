@@ -19,10 +19,10 @@ import math
 import time
 from typing import Callable, Optional
 
-from . import cia402_states as cia402
-from .cia402_states import State
-from .durand_device import DurandDevice
-from .durand_drive_objects import (
+from .. import cia402_states as cia402
+from ..cia402_states import State
+from .device import DurandDevice
+from .drive_objects import (
     ABORT_CONNECTION_OPTION,
     add_drive_objects,
     CONSUMER_HEARTBEAT,
@@ -48,8 +48,8 @@ from .durand_drive_objects import (
     TORQUE_ACTUAL,
     VELOCITY_ACTUAL,
 )
-from .durand_heartbeat_consumer import HeartbeatConsumer
-from .durand_scheduler import shared_scheduler
+from .heartbeat_consumer import HeartbeatConsumer
+from .scheduler import shared_scheduler
 
 LOGGER = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """Layer setting services (CiA 305): what may be asked of devices, and what is answered.
 
-Requests are checked here before the LSS master (``lss_master``) queues them; its frames
-are in ``lss_frames``.
+Requests are checked here before the LSS master (``master``) queues them; its frames
+are in ``frames``.
 """
 
 from dataclasses import dataclass
@@ -10,7 +10,7 @@ from typing import Optional, Tuple
 
 from canopen import lss as cia305
 
-from .sdo import MAX_NODE_ID
+from ..protocol import MAX_NODE_ID
 
 UNCONFIGURED = 0xFF
 

@@ -6,7 +6,7 @@ parameters of the device's EDS/DCF file are written first whenever it boots.
 
 The device's transmit PDOs arrive through ``network.subscribe`` with the host's monotonic
 receive time; the bus thread only checks a frame's length and hands it to the listeners as a
-:class:`~cbcan_ros.core.pdo_mapping.ReceivedPdo`, which is decoded when read, in the
+:class:`~cbcan_ros.core.pdo.mapping.ReceivedPdo`, which is decoded when read, in the
 listener's own thread. Its receive PDOs are sent on request: asynchronous ones at once,
 synchronous ones right after a SYNC the gateway produces (``sync.py``).
 """
@@ -21,13 +21,13 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from canopen.objectdictionary import ObjectDictionary
 
-from . import abort_codes
-from .bus import BusDown, BusStatus, prompt
-from .nmt import BOOT_UP, HEARTBEAT_COB_BASE
-from .pdo_mapping import describe, encode, EntryValue, PdoMapping, ReceivedPdo
-from .pdo_parameters import ParametersFailed, PdoParameters
-from .request_queue import answer, resolved
-from .sdo import SdoResult
+from ..bus import BusDown, BusStatus, prompt
+from ..nmt import BOOT_UP, HEARTBEAT_COB_BASE
+from ..sdo import abort_codes
+from ..sdo.request_queue import answer, resolved
+from ..sdo.requests import SdoResult
+from .mapping import describe, encode, EntryValue, PdoMapping, ReceivedPdo
+from .parameters import ParametersFailed, PdoParameters
 
 LOGGER = logging.getLogger(__name__)
 
