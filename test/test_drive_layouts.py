@@ -118,8 +118,8 @@ def test_a_move_reaches_its_target_and_the_drive_takes_each_set_point_with_it(ri
     finally:
         bus.shutdown()
     # Each rising bit 4 found the move's own target in the drive: the absolute one, then
-    # the distance of the relative one (-1000 counts).
-    assert set_points_taken(writes_on_the_bus(frames, layout)) == [start + 3000, -1000]
+    # the relative one, sent as the absolute target it comes to.
+    assert set_points_taken(writes_on_the_bus(frames, layout)) == [start + 3000, start + 2000]
 
 
 def test_a_move_is_not_fooled_by_a_stale_target_left_in_the_drive(rig, layout):

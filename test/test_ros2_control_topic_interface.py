@@ -18,7 +18,10 @@ from sensor_msgs.msg import JointState
 import test_drives
 from test_drives import CSP, CSV, JOINT, SCALE, WAIT
 
-from conftest import wait_until
+from cbcan_ros.simulation.durand.drive import DurandDrive
+from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
+
+from conftest import Harness, new_channel, wait_until
 from node_process import ROOT
 
 rig = test_drives.rig  # a gateway with one simulated drive (a fixture)
@@ -105,14 +108,34 @@ def test_the_documented_setup_drives_the_joint_every_cycle(rig, mode, interface,
     assert not axis.states[-1].halted
 
 
-def test_mixed_interfaces_reach_each_drive_from_the_plugins_short_arrays(rig):
-    # The plugin fills velocity only for the joints commanded in velocity: with a position
-    # joint first, the wheel's velocity is velocity[0], not velocity[1].
-    axis = rig()
-    axis.enable(CSV)
-    system = documented_system({'arm': ['position'], JOINT: ['velocity']})
-    system.commands['velocity'][1] = 0.5
-    message = system.write()
-    assert list(message.name) == ['arm', JOINT] and list(message.velocity) == [0.5]
-    axis.commands.publish(message)  # 'arm' is no drive here: its refusal is only logged
-    wait_until(lambda: axis.drive.velocity == 0.5 * SCALE, WAIT, 'the wheel at 500 counts/s')
+def test_mixed_interfaces_reach_each_drive_from_the_plugins_short_arrays(ros_context,
+                                                                         start_durand):
+    # An arm joint in position and a wheel in velocity, both drives of one gateway: the
+    # plugin fills velocity only for the wheel and position only for the arm.
+    channel = new_channel()
+    drives = {node_id: start_durand(node_id, kind=DurandDrive, channel=channel,
+                                    pdos=default_drive_pdos()) for node_id in (7, 8)}
+    gateway = Harness({'can.channel': channel, 'simulation.devices': None,
+                       'drives.nodes': [7, 8], 'node_7.joint': 'arm', 'node_8.joint': 'wheel',
+                       'node_7.position_scale': SCALE, 'node_8.velocity_scale': SCALE,
+                       'drives.command_timeout': 0.0, 'drives.consumer_time': 3.0})
+    try:
+        commands = gateway.client_node.create_publisher(JointState, '/cbcan/joint_commands',
+                                                        10)
+        for node_id, mode in ((7, CSP), (8, CSV)):
+            assert gateway.call('nmt_command', node_id=node_id, command=1).success
+            wait_until(lambda node_id=node_id, mode=mode: gateway.call(
+                'drive_command', node_id=node_id, command='enable', mode=mode).success,
+                WAIT, f'drive {node_id} enabled')
+        system = documented_system({'arm': ['position'], 'wheel': ['velocity']})
+        system.commands['position'][0] = 0.25
+        system.commands['velocity'][1] = 0.5
+        message = system.write()
+        assert list(message.position) == [0.25] and list(message.velocity) == [0.5]
+
+        def followed():
+            commands.publish(message)
+            return drives[7].position == 250 and drives[8].velocity == 500
+        wait_until(followed, WAIT, 'the arm at 250 counts and the wheel at 500 counts/s')
+    finally:
+        gateway.close()

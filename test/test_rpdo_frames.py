@@ -89,7 +89,7 @@ def test_a_stop_written_while_the_sync_frame_is_on_its_way_is_the_last_frame_sen
     stopped = threading.Event()  # ...and the drive's stop is written by SDO meanwhile
 
     def stop():
-        service.written_by_sdo(NODE, [EntryValue(CONTROLWORD, 0, data=STOP.to_bytes(2, 'little'))])
+        service.carry(NODE, [EntryValue(CONTROLWORD, 0, data=STOP.to_bytes(2, 'little'))])
         stopped.set()
     threading.Thread(target=stop, daemon=True).start()
     stopped.wait(GRACE)

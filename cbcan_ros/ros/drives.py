@@ -201,8 +201,10 @@ class DriveTopics:
     def _on_joint_commands(self, message: JointState) -> None:
         # ros2_control's topic-based hardware interface fills each array only for the joints
         # that have that command interface: with mixed interfaces, a shorter array holds the
-        # values of the joints taking it, in the order of the names.
+        # values of the joints taking it, in the order of the names. Which joint takes which
+        # is known from the drives' modes only when every name is a drive's.
         taken: Dict[str, int] = {}
+        all_ours = all(name in self._by_name for name in message.name)
         for name in message.name:
             joint = self._by_name.get(name)
             if joint is None:
@@ -217,6 +219,12 @@ class DriveTopics:
                      else taken.get(field, 0))
             if field:
                 taken[field] = taken.get(field, 0) + 1
+            if field and len(values) != len(message.name) and not all_ours:
+                self._log_refusal(f'joint_commands: its {field} array is shorter than its '
+                                  f'names, and some names are no drive of this gateway: which '
+                                  f"value is joint {name!r}'s cannot be told; nothing was "
+                                  f'sent', joint.node_id)
+                continue
             if field is None or index >= len(values):
                 self._log_refusal(f'joint_commands: joint {name!r} (node {joint.node_id}) is '
                                   f'in {cia402.mode_name(mode)}, which takes '

@@ -12,10 +12,13 @@ whose method homes where the axis stands (35, 37) only when the position is the 
 """
 
 import asyncio
+import struct
 from typing import Optional, Tuple
 
 from . import cia402
 
+# Aborts that say the drive has no such object (or sub-index): it has none of the setting.
+ABSENT = frozenset({0x06020000, 0x06090011})
 # CiA 402: 0x6067 = 0xFFFFFFFF switches the drive's position window off.
 WINDOW_OFF = 0xFFFFFFFF
 # The window, in drive units, for a drive without 0x6067 or with it switched off.
@@ -25,27 +28,53 @@ HOME_HERE = frozenset({35, 37})
 
 
 async def position_window(drive, timeout: float) -> int:
-    """Return the drive's position window in drive units; read once, then kept."""
+    """Return the drive's position window in drive units; once read, kept until a boot.
+
+    A drive without 0x6067, or with it off, gets ``DEFAULT_WINDOW``; a read that failed
+    otherwise (a timeout) is tried again at the next move, with the default meanwhile.
+    """
     if drive.position_window is None:
-        read = await asyncio.wrap_future(drive.objects.read([cia402.POSITION_WINDOW], timeout))
-        window = read.get(cia402.POSITION_WINDOW, WINDOW_OFF)
-        drive.position_window = DEFAULT_WINDOW if window == WINDOW_OFF else window
+        result, = await asyncio.wrap_future(drive.objects.read_entries(
+            cia402.POSITION_WINDOW, (0,), timeout))
+        if result.success:
+            window = _unpack('<I', result.data)
+            drive.position_window = DEFAULT_WINDOW if window == WINDOW_OFF else window
+        elif result.abort_code in ABSENT:
+            drive.position_window = DEFAULT_WINDOW
+        else:
+            return DEFAULT_WINDOW
     return drive.position_window
 
 
 async def software_limits(drive, timeout: float) -> Optional[Tuple[int, int]]:
     """Return the drive's software position limits (0x607D:1, :2), None when it has none.
 
-    Read once, then kept; limits that cannot be read, or whose minimum is not below the
-    maximum (0, 0 on many drives), limit nothing.
+    Once read, kept until a boot. A drive without 0x607D, or whose minimum is not below the
+    maximum (0, 0 on many drives), has none. A read that failed otherwise raises
+    ``LimitsUnknown``: a move is not sent without knowing them.
     """
     if drive.position_limits is None:
-        read = await asyncio.wrap_future(drive.objects.read_entries(
-            cia402.SOFTWARE_POSITION_LIMIT, (1, 2), '<i', timeout))
-        lowest, highest = read.get(1), read.get(2)
-        drive.position_limits = ((lowest, highest) if lowest is not None
-                                 and highest is not None and lowest < highest else ())
+        results = await asyncio.wrap_future(drive.objects.read_entries(
+            cia402.SOFTWARE_POSITION_LIMIT, (1, 2), timeout))
+        failed = next((result for result in results if not result.success), None)
+        if failed is not None and failed.abort_code not in ABSENT:
+            raise LimitsUnknown(f'node {drive.node_id}: its software position limits '
+                                f'(0x607D) could not be read ({failed.message}); nothing was '
+                                f'sent')
+        lowest, highest = (None if failed else _unpack('<i', result.data)
+                           for result in results)
+        drive.position_limits = ((lowest, highest) if failed is None and lowest < highest
+                                 else ())
     return drive.position_limits or None
+
+
+class LimitsUnknown(Exception):
+    """The software position limits could not be read: the message says why."""
+
+
+def _unpack(fmt: str, data: bytes) -> int:
+    size = struct.calcsize(fmt)
+    return struct.unpack(fmt, bytes(data[:size]).ljust(size, b'\0'))[0]
 
 
 def outside_limits(node_id: int, target: int, limits: Optional[Tuple[int, int]]) -> str:

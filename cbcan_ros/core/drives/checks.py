@@ -68,10 +68,7 @@ class RequestChecks:
             return refused
         with self._lock:
             status = shown(self._drives[node_id])
-            unwatched = self._drives[node_id].unwatched
         problem = command_problem(status, command, mode)
-        if not problem and command == 'enable' and unwatched:
-            problem = f'node {node_id}: {unwatched}'
         return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
 
     def move(self, node_id: int, position: int, velocity: int) -> Optional[DriveResult]:

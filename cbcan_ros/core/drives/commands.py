@@ -14,7 +14,14 @@ import contextvars
 from typing import Callable, Dict, Optional
 
 from . import cia402
-from .arrival import HOME_HERE, missed, outside_limits, position_window, software_limits
+from .arrival import (
+    HOME_HERE,
+    LimitsUnknown,
+    missed,
+    outside_limits,
+    position_window,
+    software_limits,
+)
 from .checks import ENABLED_COMMANDS, lost_problem, SHUTTING_DOWN, state_problem
 from .standstill import wait_for_standstill
 from .status import DriveResult
@@ -147,7 +154,11 @@ class DriveCommands:
             message = (f'timed out after {timeout:g} s: node {node_id} is {status.state} '
                        f'(statusword 0x{status.statusword:04X}, mode {status.mode})')
             if halt_on_timeout:  # a motion that did not end in time does not run on
-                message = await self._halt_after_cancel(drive, message)
+                try:
+                    message = await self._halt_after_cancel(drive, message)
+                except asyncio.CancelledError:  # replaced or shut down meanwhile: answered
+                    message = (f'{message}; {self._reasons.pop(task, SHUTTING_DOWN)} before '
+                               f'the halt was confirmed')
             return DriveResult(False, message, service.status(node_id))
         except asyncio.CancelledError:
             reason = self._reasons.pop(task, SHUTTING_DOWN)
@@ -196,15 +207,18 @@ class DriveCommands:
                 return status
             await woken
 
-    async def _send(self, drive, values: Dict[int, int], halt: Optional[str] = None) -> int:
+    async def _send(self, drive, values: Dict[int, int], halt: Optional[str] = None,
+                    by_sdo: bool = False) -> int:
         """Send ``values``; return the statuswords taken before (what a reply must exceed).
 
-        ``halt``: set or release the halt with them (``DriveService.send``).
+        ``halt``: set or release the halt with them (``DriveService.send``); ``by_sdo``:
+        whatever the PDOs map (a stop: applied at once, confirmed, and put into every frame
+        waiting for SYNC).
         """
         mark = drive.updates
         try:
             sent = self._service.send(drive, values, SEND_TIMEOUT, READS_AT_START.get(),
-                                      ENABLED_ONLY.get(), halt)
+                                      ENABLED_ONLY.get(), halt, by_sdo)
         except ValueError as error:
             raise DriveFailed(f'node {drive.node_id}: {error}; nothing was sent') from None
         result = await asyncio.wrap_future(sent)
@@ -222,8 +236,12 @@ class DriveCommands:
         return await self._until(drive, lambda status: drive.updates > mark
                                  and ok(status), fault_ok)
 
-    async def _reach(self, drive, wanted: str, done: Callable, fault_ok: bool = False):
-        """Step the drive towards ``wanted`` until ``done(status)``, a transition at a time."""
+    async def _reach(self, drive, wanted: str, done: Callable, fault_ok: bool = False,
+                     by_sdo: bool = False):
+        """Step the drive towards ``wanted`` until ``done(status)``, a transition at a time.
+
+        ``by_sdo``: each controlword by SDO (a stop), else as the PDOs map it.
+        """
         status = self._service.status(drive.node_id)
         while not done(status):
             if status.faulted and not fault_ok:
@@ -233,7 +251,7 @@ class DriveCommands:
             step = cia402.step_towards(status.state, wanted)
             before = status.state
             if step is not None:
-                await self._send(drive, {cia402.CONTROLWORD: step})
+                await self._send(drive, {cia402.CONTROLWORD: step}, by_sdo=by_sdo)
             status = await self._until(
                 drive, lambda s, before=before: s.state != before or done(s), fault_ok)
         return status
@@ -271,7 +289,14 @@ class DriveCommands:
     # The commands.
 
     async def _enable(self, drive, mode: int) -> str:
+        if drive.unwatched:  # written since, or a write that failed once: tried again
+            await self._service.watch_again(drive)
+            if drive.unwatched:
+                raise DriveFailed(f'node {drive.node_id}: {drive.unwatched}; enable refused, '
+                                  f'nothing was sent to the controlword (or give that up: '
+                                  f'drives.keep_running_if_gateway_dies)')
         self._service.set_enabled(drive, False)
+        drive.pp_goal = None  # a drive enabled afresh takes where it stands as its base
         if (drive.controlword & cia402.HALT
                 and self._service.status(drive.node_id).state == cia402.OPERATION_ENABLED):
             # Held where it stands, not where it slows. A velocity read may never be exactly
@@ -285,7 +310,7 @@ class DriveCommands:
         if drive.controlword & cia402.HALT:  # already enabled, halted: released, held
             if status.mode == cia402.PROFILE_POSITION:
                 # Released alone, it would go on to the set-point it was halted on its way to.
-                await self._new_set_point(drive, held, False)
+                await self._new_set_point(drive, held)
             else:  # bit 4 down too: a halted homing does not start again
                 mark = await self._send(drive, {cia402.CONTROLWORD: drive.controlword & ~(
                     cia402.HALT | cia402.MODE_BITS)})
@@ -298,7 +323,8 @@ class DriveCommands:
         async def heard() -> str:
             status = await self._reach(
                 drive, cia402.SWITCH_ON_DISABLED,
-                lambda s: s.state == cia402.SWITCH_ON_DISABLED or s.faulted, fault_ok=True)
+                lambda s: s.state == cia402.SWITCH_ON_DISABLED or s.faulted, fault_ok=True,
+                by_sdo=True)
             return f'node {drive.node_id} is {status.state}: its power stage is off'
         return await self._stop(drive, cia402.DISABLE_VOLTAGE, heard)
 
@@ -307,7 +333,8 @@ class DriveCommands:
             status = self._service.status(drive.node_id)
             if _stopped(status) or status.state not in cia402.POWERED:
                 return f'node {drive.node_id} is {status.state}: nothing to stop'
-            mark = await self._send(drive, {cia402.CONTROLWORD: cia402.QUICK_STOP})
+            mark = await self._send(drive, {cia402.CONTROLWORD: cia402.QUICK_STOP},
+                                    by_sdo=True)
             status = await self._after(drive, mark, _stopped, fault_ok=True)
             return f'node {drive.node_id} stopped: {status.state}'
         return await self._stop(drive, cia402.QUICK_STOP, heard)
@@ -407,11 +434,20 @@ class DriveCommands:
                     on_feedback: Optional[Callable]) -> str:
         window = await position_window(drive, SEND_TIMEOUT)
         wanted = position
-        if relative:  # from where the axis stands: the set-point it last finished
-            await self._read_position(drive)
-            wanted += self._service.status(drive.node_id).position
-        problem = outside_limits(drive.node_id, wanted,
-                                 await software_limits(drive, SEND_TIMEOUT))
+        if relative:
+            # From the set-point the gateway last gave it since its enable (a cancelled
+            # move's too), else from where it stands; sent as that absolute target, so the
+            # drive's own base for relative set-points (0x60F2) does not matter.
+            if drive.pp_goal is None:
+                await self._read_position(drive)
+            base = drive.pp_goal
+            wanted += base if base is not None else self._service.status(
+                drive.node_id).position
+        try:
+            limits = await software_limits(drive, SEND_TIMEOUT)
+        except LimitsUnknown as error:
+            raise DriveFailed(str(error)) from None
+        problem = outside_limits(drive.node_id, wanted, limits)
         if problem:
             raise DriveFailed(problem)
         await self._change_to_pp(drive)
@@ -419,7 +455,7 @@ class DriveCommands:
         velocity = velocity or drive.profile_velocity
         if velocity and velocity != drive.objects.value(cia402.PROFILE_VELOCITY_OBJECT):
             await self._send(drive, {cia402.PROFILE_VELOCITY_OBJECT: velocity})
-        mark = await self._new_set_point(drive, position, relative)
+        mark = await self._new_set_point(drive, wanted)
         while True:
             status = await self._after(drive, mark, lambda s: True)
             mark = drive.updates
@@ -446,14 +482,14 @@ class DriveCommands:
     async def _stream(self, drive) -> str:
         await self._change_to_pp(drive)
         while drive.node_id in self._set_points:
-            await self._new_set_point(drive, self._set_points.pop(drive.node_id), False)
+            await self._new_set_point(drive, self._set_points.pop(drive.node_id))
         return 'set-points taken'
 
     async def _change_to_pp(self, drive) -> None:
         if self._service.status(drive.node_id).mode != cia402.PROFILE_POSITION:
             await self._change_mode(drive, cia402.PROFILE_POSITION)
 
-    async def _new_set_point(self, drive, position: int, relative: bool) -> int:
+    async def _new_set_point(self, drive, position: int) -> int:
         """Hand the drive a set-point (bit 4 up, wait for bit 12, bit 4 down); return a mark.
 
         The mark is taken when the drive acknowledged: target reached counts from there.
@@ -469,10 +505,9 @@ class DriveCommands:
                 cia402.CONTROLWORD: drive.controlword & ~cia402.MODE_BITS})
             await self._after(drive, mark, lambda s: not s.statusword & cia402.MODE_BIT_12)
         bits = cia402.NEW_SET_POINT | cia402.CHANGE_SET_IMMEDIATELY
-        if relative:
-            bits |= cia402.RELATIVE
         mark = await self._send(drive, {cia402.TARGET_POSITION: position,
                                         cia402.CONTROLWORD: word | bits})
+        drive.pp_goal = position
         await self._after(drive, mark, lambda s: bool(s.statusword & cia402.MODE_BIT_12))
         acknowledged = drive.updates - 1
         await self._send(drive, {cia402.CONTROLWORD: word})

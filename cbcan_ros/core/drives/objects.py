@@ -93,7 +93,7 @@ class DriveObjects:
         self._pdo = pdo
         self._sdo_batch = sdo_batch
         self._sync_producing = sync_producing
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # a future resolved at once runs callbacks under it
         self.commanded: Dict[int, int] = {}
         # Objects its RPDOs map that the gateway does not command, as read from the drive
         # after the mapping read number ``_held_reads`` (-1: to be read).
@@ -166,52 +166,61 @@ class DriveObjects:
 
     def _send_frames(self, frames: List[Frame], previous: Optional[int], write: int,
                      carry_controlword: bool) -> 'Future[SdoResult]':
-        """Send ``frames`` of write number ``write`` (the last one with its controlword)."""
+        """Send ``frames`` of write number ``write`` (the last one with its controlword).
+
+        Checked and sent under the lock a stop by SDO takes too (``write_by_sdo``): a part
+        that waited is sent before the stop, or not at all. The write's controlword, once
+        sent, goes into the drive's other RPDO frames (``PdoService.carry``): one of them
+        waiting for SYNC with an older controlword would undo it.
+        """
         with self._lock:
             if self._controlword_write > write:
                 return resolved(SdoResult.failed(
                     f'node {self.node_id}: a later command changed the controlword before '
                     f'this one was sent in full; the rest was not sent'))
-            commanded, held = dict(self.commanded), dict(self._held)
-        if any(key not in held for frame in frames for key in frame.held):
-            return resolved(SdoResult.failed(
-                f'node {self.node_id} booted before this command was sent in full; the rest '
-                f'was not sent'))
-        futures = []
-        for frame in frames:
-            carried = frame_values(frame, commanded, previous, carry_controlword)
-            # As bytes of the profile's types, whatever type the PDO service knows.
-            futures.append(self._pdo.write(self.node_id, frame.number, [
-                EntryValue(index, 0, data=encode(index, value))
-                for index, value in carried.items()] + [
-                EntryValue(index, sub, data=held[(index, sub)]) for index, sub in frame.held]))
+            commanded, held = self.commanded, self._held
+            if any(key not in held for frame in frames for key in frame.held):
+                return resolved(SdoResult.failed(
+                    f'node {self.node_id} booted before this command was sent in full; the '
+                    f'rest was not sent'))
+            futures = []
+            for frame in frames:
+                carried = frame_values(frame, commanded, previous, carry_controlword)
+                # As bytes of the profile's types, whatever type the PDO service knows.
+                futures.append(self._pdo.write(self.node_id, frame.number, [
+                    EntryValue(index, 0, data=encode(index, value))
+                    for index, value in carried.items()] + [
+                    EntryValue(index, sub, data=held[(index, sub)])
+                    for index, sub in frame.held]))
+            if carry_controlword and cia402.CONTROLWORD in commanded:
+                word = encode(cia402.CONTROLWORD, commanded[cia402.CONTROLWORD])
+                self._pdo.carry(self.node_id, [EntryValue(cia402.CONTROLWORD, 0, data=word)],
+                                skip={frame.number for frame in frames})
         return all_of(futures)
 
     def write_by_sdo(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':
-        """Send ``values`` by SDO whatever the PDOs map (applied at once, with an answer)."""
+        """Send ``values`` by SDO whatever the PDOs map (applied at once, with an answer).
+
+        A controlword among them ends what an earlier write still had to send.
+        """
         data = [(index, encode(index, value)) for index, value in values.items()]
         with self._lock:
             self.commanded.update(values)
-        return self._write_by_sdo(data, timeout)
+            self._writes += 1
+            if cia402.CONTROLWORD in values:
+                self._controlword_write = self._writes
+            return self._write_by_sdo(data, timeout)
 
     def value(self, index: int) -> Optional[int]:
         """Return the value last commanded (or read) of ``index``, None when unknown."""
         with self._lock:
             return self.commanded.get(index)
 
-    def read_entries(self, index: int, subindexes: Iterable[int], fmt: str,
-                     timeout: float) -> 'Future[Dict[int, int]]':
-        """Read sub-entries of record ``index`` coded as ``fmt``; resolves subindex: value."""
-        subindexes = list(subindexes)
-        batch = self._sdo_batch([Access(self.node_id, index, sub) for sub in subindexes],
-                                timeout)
-        size = struct.calcsize(fmt)
-        done: Future = Future()
-        batch.add_done_callback(lambda finished: answer(done, {
-            sub: struct.unpack(fmt, bytes(result.data[:size]).ljust(size, b'\0'))[0]
-            for sub, result in zip(subindexes, finished.result(), strict=True)
-            if result.success}))
-        return done
+    def read_entries(self, index: int, subindexes: Iterable[int],
+                     timeout: float) -> 'Future[List[SdoResult]]':
+        """Read sub-entries of object ``index`` by SDO; resolves to one SdoResult each."""
+        return self._sdo_batch([Access(self.node_id, index, sub) for sub in subindexes],
+                               timeout)
 
     def read_initial(self, timeout: float) -> 'Future[Dict[int, int]]':
         """Read what the gateway needs of a drive it now hears (see ``know_commanded``)."""
@@ -274,7 +283,7 @@ class DriveObjects:
 
     def _write_by_sdo(self, data, timeout: float) -> 'Future[SdoResult]':
         if self.node_id in self._pdo.node_ids:  # no RPDO frame may undo it
-            self._pdo.written_by_sdo(self.node_id, [EntryValue(index, 0, data=value)
+            self._pdo.carry(self.node_id, [EntryValue(index, 0, data=value)
                                                     for index, value in data])
         batch = self._sdo_batch([Access(self.node_id, index, 0, True, value)
                                  for index, value in data], timeout)

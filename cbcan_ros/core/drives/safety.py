@@ -188,7 +188,8 @@ async def watch_the_gateway(sdo_batch, drive: DriveRecord, lock, settings: Drive
     A beat follows the consumer's write at once: a consumer watches from the first beat it
     hears, and a drive enabled before the next beat on the grid would run on if the gateway
     died then. A drive whose 0x6007 is 0 would take no action on the loss: it is set to
-    ``settings.abort_connection``, or, with that 0, ``drive.unwatched`` refuses enable.
+    ``settings.abort_connection``, or, with that 0, ``drive.unwatched`` says why enable is
+    refused; as it does when 0x1016:1 could not be written. An enable tries it all again.
     """
     node_id = drive.node_id
     if settings.abort_connection is None:
@@ -198,8 +199,12 @@ async def watch_the_gateway(sdo_batch, drive: DriveRecord, lock, settings: Drive
         [Access(node_id, cia402.CONSUMER_HEARTBEAT, 1, True, struct.pack('<I', entry))],
         CONSUMER_TIMEOUT))
     if not written[0].success:
-        LOGGER.warning('drive %d: its heartbeat consumer (0x1016:1) was not set: %s; it will '
-                       'not stop by itself if the gateway dies', node_id, written[0].message)
+        unwatched = (f'its heartbeat consumer (0x1016:1) could not be written '
+                     f'({written[0].message}): it would run on if the gateway died')
+        with lock:
+            drive.unwatched = unwatched
+        LOGGER.warning('drive %d: %s; enable is refused until it is written', node_id,
+                       unwatched)
         return
     beat_now()
     reaction, unwatched = await _abort_connection(sdo_batch, node_id, settings)

@@ -262,6 +262,11 @@ class DriveService:
             write = drive.objects.write_by_sdo if by_sdo else drive.objects.write
             return write(values, timeout)
 
+    async def watch_again(self, drive: DriveRecord) -> None:
+        """Have ``drive`` watch the gateway again (0x1016:1, 0x6007); ``unwatched`` tells."""
+        await safety.watch_the_gateway(self._sdo_batch, drive, self._lock, self.settings,
+                                       self._beat_now)
+
     def bus_down(self) -> Optional[str]:
         """Return why the bus is down, None while it is up."""
         return self._bus_down()
@@ -340,6 +345,8 @@ class DriveService:
                 drive.unread_state = ''
             if boot:  # UNKNOWN until re-read: its feedback waits for that read (_apply)
                 drive.objects.forget()
+                # Its settings may have changed with the boot: read again when needed.
+                drive.position_window = drive.position_limits = drive.pp_goal = None
                 drive.halted_by = ''
                 drive.status = replace(drive.status, state=cia402.UNKNOWN, needs_enable=True,
                                        halted=False)
@@ -491,8 +498,31 @@ class DriveService:
         return drive.read_wanted if drive else 0
 
     def _submit(self, drive: DriveRecord, coroutine) -> 'Future[DriveResult]':
-        return self._runner.submit(coroutine) or resolved(failed(
-            self.status(drive.node_id), f'{SHUTTING_DOWN}; {checks.NOTHING_SENT}'))
+        """Run a sequence on the drives' loop; its future always resolves to a DriveResult.
+
+        A sequence ended from outside (the loop closing) or by a defect is answered too: a
+        caller waiting on it would otherwise never hear back.
+        """
+        running = self._runner.submit(coroutine)
+        if running is None:
+            return resolved(failed(self.status(drive.node_id),
+                                   f'{SHUTTING_DOWN}; {checks.NOTHING_SENT}'))
+        done: Future = Future()
+
+        def settle(finished: Future) -> None:
+            if finished.cancelled():
+                result = failed(self.status(drive.node_id), f'{SHUTTING_DOWN}: the command '
+                                                            f'was ended')
+            elif finished.exception() is not None:
+                LOGGER.error('drive %d: a command failed: %r', drive.node_id,
+                             finished.exception())
+                result = failed(self.status(drive.node_id), f'node {drive.node_id}: the '
+                                f'command failed: {finished.exception()!r}')
+            else:
+                result = finished.result()
+            answer(done, result)
+        running.add_done_callback(settle)
+        return done
 
     def _log_failed_target(self, node_id: int, done: Future) -> None:
         if not done.result().success:

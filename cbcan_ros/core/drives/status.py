@@ -107,6 +107,7 @@ class DriveRecord:
     position_window: Optional[int] = None  # 0x6067 in drive units, once read (drive_arrival)
     position_limits: Optional[tuple] = None  # 0x607D (min, max); () none; None not read yet
     profile_velocity: int = 0  # 0x6081 as read when heard: what a move with velocity 0 uses
+    pp_goal: Optional[int] = None  # the last PP set-point given since its enable: relative base
     unwatched: str = ''  # why it would run on if the gateway died (enable refused), or ''
     waiters: List[Callable[[], None]] = field(default_factory=list)
     # Held from deciding what to send (a target, a halt, a stop, a step) until it is handed

@@ -221,20 +221,23 @@ class PdoService:
                 return resolved(self._refused(node_id, frame))
             return resolved(self._send(mapping, frame))
 
-    def written_by_sdo(self, node_id: int, values: Sequence[EntryValue]) -> None:
-        """Put ``values``, about to be written to ``node_id`` by SDO, into its RPDOs' frames.
+    def carry(self, node_id: int, values: Sequence[EntryValue], skip=()) -> None:
+        """Put ``values``, written to ``node_id`` another way, into its other RPDOs' frames.
 
-        So no frame undoes the SDO write (a stop by SDO, then a frame with the controlword
-        that ran the drive): one waiting for the next SYNC goes out carrying them, and while
-        SYNC is produced a synchronous RPDO's frame is sent again at once, since the device
-        keeps the last one it received until the next SYNC applies it; at shutdown too (the
-        drives' stops are written after this service stopped, SYNC goes on until after them).
+        Another way: by SDO, or in RPDO ``skip`` (numbers). So no frame undoes that write (a
+        stop, then a frame with the controlword that ran the drive): one waiting for the next
+        SYNC goes out carrying them, and while SYNC is produced a synchronous RPDO's frame is
+        sent again at once, since the device keeps the last one it received until the next
+        SYNC applies it; at shutdown too (the drives' stops are written after this service
+        stopped, SYNC goes on until after them).
         """
         with self._frames:  # a SYNC flush of the frame before these values cannot come last
             resend = []
             with self._lock:
                 device = self._devices.get(node_id)
                 for number, mapping in (device.rpdos.items() if device else ()):
+                    if number in skip:
+                        continue
                     mapped = [value for value in values if any(
                         (entry.index, entry.subindex) == (value.index, value.subindex)
                         and not entry.dummy for entry in mapping.entries)]
