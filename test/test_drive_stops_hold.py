@@ -15,9 +15,10 @@ from action_msgs.msg import GoalStatus
 from sensor_msgs.msg import JointState
 from test_drive_layouts import move
 import test_drives
-from test_drives import CSV, NODE, PP, WAIT, watch
+from test_drives import CSP, CSV, NODE, PP, WAIT, watch
 
 from cbcan_ros.action import DriveMove
+from cbcan_ros.simulation.durand.drive import DurandDrive
 from cbcan_ros.simulation.durand.drive_objects import (
     CONSUMER_HEARTBEAT,
     PROFILE_ACCELERATION,
@@ -26,7 +27,7 @@ from cbcan_ros.simulation.durand.drive_objects import (
 )
 from cbcan_ros.simulation.durand.drive_pdos import drive_pdos
 
-from conftest import wait_for_future, wait_until
+from conftest import Harness, new_channel, wait_for_future, wait_until
 
 rig = test_drives.rig  # a gateway with one simulated drive (a fixture)
 SYNC = 0x80
@@ -169,3 +170,38 @@ def test_a_short_joint_commands_array_naming_another_devices_joint_is_not_guesse
         return 'cannot be told; nothing was sent' in caplog.text
     wait_until(refused, WAIT, 'the message refused, in the log')
     assert axis.drive.velocity == 0
+
+
+def test_a_move_on_a_drive_without_profile_position_is_refused_before_anything_is_sent(
+        ros_context, start_durand):
+    channel = new_channel()
+    drive = start_durand(NODE, kind=DurandDrive, channel=channel,
+                         pdos=drive_pdos('combined'), modes=(CSV,))
+    wait_until(lambda: drive.running, WAIT, 'the drive receiving')
+    gateway = Harness({'can.channel': channel, 'simulation.devices': None,
+                       'drives.nodes': [NODE], 'drives.consumer_time': 3.0})
+    try:
+        assert gateway.call('nmt_command', node_id=NODE, command=1).success
+        wait_until(lambda: gateway.call('drive_command', node_id=NODE, command='enable',
+                                        mode=CSV).success, WAIT, 'the drive enabled in CSV')
+        future, _cancel = gateway.node.gateway.drives.move(NODE, 1000)
+        refused = future.result(WAIT)
+        assert not refused.success
+        assert 'does not support profile position' in refused.message, refused.message
+        assert 'nothing was sent' in refused.message
+        assert drive.value(0x6060, 0) == struct.pack('<b', CSV)
+    finally:
+        gateway.close()
+
+
+def test_a_relative_move_after_another_mode_counts_from_where_the_axis_stands(rig):
+    # The last move's set-point is no base once the axis was moved in another mode.
+    axis = rig()
+    axis.enable(PP)
+    assert move(axis, 2.0).result.success
+    axis.enable(CSP)
+    axis.target.publish(test_drives.Float64(data=0.5))
+    wait_until(lambda: axis.drive.position == 500, WAIT, 'the drive at 500 counts (CSP)')
+    result = move(axis, 1.0, relative=True).result
+    assert result.success, result.message
+    assert axis.drive.position == 1500

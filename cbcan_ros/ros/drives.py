@@ -202,36 +202,37 @@ class DriveTopics:
         # ros2_control's topic-based hardware interface fills each array only for the joints
         # that have that command interface: with mixed interfaces, a shorter array holds the
         # values of the joints taking it, in the order of the names. Which joint takes which
-        # is known from the drives' modes only when every name is a drive's.
-        taken: Dict[str, int] = {}
-        all_ours = all(name in self._by_name for name in message.name)
-        for name in message.name:
-            joint = self._by_name.get(name)
+        # is told by the drives' modes, only when every name is a drive's in a mode that
+        # takes a target and the array has as many values as those drives.
+        joints = [self._by_name.get(name) for name in message.name]
+        fields = [self._field(joint) if joint else None for joint in joints]
+        known = all(fields)
+        for n, (name, joint, field) in enumerate(zip(message.name, joints, fields,
+                                                     strict=True)):
             if joint is None:
                 self._log_refusal(f"joint_commands: joint {name!r} is no drive's (joints: "
                                   f'{", ".join(self._by_name) or "none"})')
                 continue
-            mode = self._service.status(joint.node_id).mode
-            field = {cia402.TARGET_POSITION: 'position', cia402.TARGET_VELOCITY: 'velocity',
-                     cia402.TARGET_TORQUE: 'effort'}.get(cia402.TARGET_OF_MODE.get(mode))
             values = getattr(message, field) if field else ()
-            index = (message.name.index(name) if len(values) == len(message.name)
-                     else taken.get(field, 0))
-            if field:
-                taken[field] = taken.get(field, 0) + 1
-            if field and len(values) != len(message.name) and not all_ours:
-                self._log_refusal(f'joint_commands: its {field} array is shorter than its '
-                                  f'names, and some names are no drive of this gateway: which '
-                                  f"value is joint {name!r}'s cannot be told; nothing was "
-                                  f'sent', joint.node_id)
-                continue
-            if field is None or index >= len(values):
+            taking = [k for k, other in enumerate(fields) if other == field]
+            if field and len(values) == len(message.name):
+                index = n
+            elif field and known and len(values) == len(taking):
+                index = taking.index(n)
+            else:
+                mode = self._service.status(joint.node_id).mode
                 self._log_refusal(f'joint_commands: joint {name!r} (node {joint.node_id}) is '
                                   f'in {cia402.mode_name(mode)}, which takes '
-                                  f'{field or "no target"}, and the message has none for it',
-                                  joint.node_id)
+                                  f'{field or "no target"}, and which value of the message '
+                                  f'is its cannot be told; nothing was sent', joint.node_id)
                 continue
             self._send_target(joint, values[index], 'joint_commands')
+
+    def _field(self, joint: Joint) -> Optional[str]:
+        """Return the JointState field the drive's present mode takes, None for none."""
+        mode = self._service.status(joint.node_id).mode
+        return {cia402.TARGET_POSITION: 'position', cia402.TARGET_VELOCITY: 'velocity',
+                cia402.TARGET_TORQUE: 'effort'}.get(cia402.TARGET_OF_MODE.get(mode))
 
     def _send_target(self, joint: Joint, value: float, topic: str) -> None:
         refusal = self._refusal()

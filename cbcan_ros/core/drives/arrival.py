@@ -34,8 +34,11 @@ async def position_window(drive, timeout: float) -> int:
     otherwise (a timeout) is tried again at the next move, with the default meanwhile.
     """
     if drive.position_window is None:
+        reads = drive.read_wanted
         result, = await asyncio.wrap_future(drive.objects.read_entries(
             cia402.POSITION_WINDOW, (0,), timeout))
+        if drive.read_wanted != reads:  # it booted or was lost meanwhile: not kept
+            return DEFAULT_WINDOW
         if result.success:
             window = _unpack('<I', result.data)
             drive.position_window = DEFAULT_WINDOW if window == WINDOW_OFF else window
@@ -54,8 +57,12 @@ async def software_limits(drive, timeout: float) -> Optional[Tuple[int, int]]:
     ``LimitsUnknown``: a move is not sent without knowing them.
     """
     if drive.position_limits is None:
+        reads = drive.read_wanted
         results = await asyncio.wrap_future(drive.objects.read_entries(
             cia402.SOFTWARE_POSITION_LIMIT, (1, 2), timeout))
+        if drive.read_wanted != reads:  # it booted or was lost meanwhile: the move ends
+            raise LimitsUnknown(f'node {drive.node_id} booted or was lost while its software '
+                                f'position limits (0x607D) were read; nothing was sent')
         failed = next((result for result in results if not result.success), None)
         if failed is not None and failed.abort_code not in ABSENT:
             raise LimitsUnknown(f'node {drive.node_id}: its software position limits '

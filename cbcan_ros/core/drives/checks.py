@@ -75,8 +75,13 @@ class RequestChecks:
         """Check a move (drive units)."""
         problem = (integer_problem('position', position, 32)
                    or integer_problem('velocity', velocity, 32, unsigned=True))
-        return (self.drive(node_id, enabled=True)
-                or (self._refused(node_id, problem) if problem else None))
+        refused = self.drive(node_id, enabled=True)
+        if refused is not None:
+            return refused
+        with self._lock:
+            status = shown(self._drives[node_id])
+        problem = problem or command_problem(status, 'move', cia402.PROFILE_POSITION)
+        return self._refused(node_id, problem) if problem else None
 
     def drive(self, node_id: int, enabled: bool,
               stopping: bool = False) -> Optional[DriveResult]:

@@ -154,11 +154,7 @@ class DriveCommands:
             message = (f'timed out after {timeout:g} s: node {node_id} is {status.state} '
                        f'(statusword 0x{status.statusword:04X}, mode {status.mode})')
             if halt_on_timeout:  # a motion that did not end in time does not run on
-                try:
-                    message = await self._halt_after_cancel(drive, message)
-                except asyncio.CancelledError:  # replaced or shut down meanwhile: answered
-                    message = (f'{message}; {self._reasons.pop(task, SHUTTING_DOWN)} before '
-                               f'the halt was confirmed')
+                message = await self._halt_answered(drive, task, message)
             return DriveResult(False, message, service.status(node_id))
         except asyncio.CancelledError:
             reason = self._reasons.pop(task, SHUTTING_DOWN)
@@ -167,11 +163,7 @@ class DriveCommands:
             # A move replaced before its cancel came halts nothing: the drive is the newer
             # sequence's.
             if halting and self._tasks.get(node_id) is task:
-                try:
-                    reason = await self._halt_after_cancel(drive, reason)
-                except asyncio.CancelledError:  # replaced or shut down meanwhile: answered
-                    reason = (f'{reason}; {self._reasons.pop(task, SHUTTING_DOWN)} before '
-                              f'the halt was confirmed')
+                reason = await self._halt_answered(drive, task, reason)
             return DriveResult(False, reason, service.status(node_id))
         finally:
             self._tokens.pop(task, None)
@@ -207,18 +199,15 @@ class DriveCommands:
                 return status
             await woken
 
-    async def _send(self, drive, values: Dict[int, int], halt: Optional[str] = None,
-                    by_sdo: bool = False) -> int:
+    async def _send(self, drive, values: Dict[int, int], halt: Optional[str] = None) -> int:
         """Send ``values``; return the statuswords taken before (what a reply must exceed).
 
-        ``halt``: set or release the halt with them (``DriveService.send``); ``by_sdo``:
-        whatever the PDOs map (a stop: applied at once, confirmed, and put into every frame
-        waiting for SYNC).
+        ``halt``: set or release the halt with them (``DriveService.send``).
         """
         mark = drive.updates
         try:
             sent = self._service.send(drive, values, SEND_TIMEOUT, READS_AT_START.get(),
-                                      ENABLED_ONLY.get(), halt, by_sdo)
+                                      ENABLED_ONLY.get(), halt)
         except ValueError as error:
             raise DriveFailed(f'node {drive.node_id}: {error}; nothing was sent') from None
         result = await asyncio.wrap_future(sent)
@@ -236,12 +225,8 @@ class DriveCommands:
         return await self._until(drive, lambda status: drive.updates > mark
                                  and ok(status), fault_ok)
 
-    async def _reach(self, drive, wanted: str, done: Callable, fault_ok: bool = False,
-                     by_sdo: bool = False):
-        """Step the drive towards ``wanted`` until ``done(status)``, a transition at a time.
-
-        ``by_sdo``: each controlword by SDO (a stop), else as the PDOs map it.
-        """
+    async def _reach(self, drive, wanted: str, done: Callable, fault_ok: bool = False):
+        """Step the drive towards ``wanted`` until ``done(status)``, a transition at a time."""
         status = self._service.status(drive.node_id)
         while not done(status):
             if status.faulted and not fault_ok:
@@ -251,7 +236,7 @@ class DriveCommands:
             step = cia402.step_towards(status.state, wanted)
             before = status.state
             if step is not None:
-                await self._send(drive, {cia402.CONTROLWORD: step}, by_sdo=by_sdo)
+                await self._send(drive, {cia402.CONTROLWORD: step})
             status = await self._until(
                 drive, lambda s, before=before: s.state != before or done(s), fault_ok)
         return status
@@ -282,6 +267,7 @@ class DriveCommands:
         """Hold the axis, then change to ``mode``; return the target that holds it."""
         held = await self._hold(drive, mode)
         if self._service.status(drive.node_id).mode != mode:
+            drive.pp_goal = None  # the set-point of another mode is no base for a move
             await self._send(drive, {cia402.MODE: mode})
             await self._until(drive, lambda status: status.mode == mode)
         return held
@@ -296,7 +282,8 @@ class DriveCommands:
                                   f'nothing was sent to the controlword (or give that up: '
                                   f'drives.keep_running_if_gateway_dies)')
         self._service.set_enabled(drive, False)
-        drive.pp_goal = None  # a drive enabled afresh takes where it stands as its base
+        if self._service.status(drive.node_id).state != cia402.OPERATION_ENABLED:
+            drive.pp_goal = None  # enabled afresh, a drive takes where it stands as its base
         if (drive.controlword & cia402.HALT
                 and self._service.status(drive.node_id).state == cia402.OPERATION_ENABLED):
             # Held where it stands, not where it slows. A velocity read may never be exactly
@@ -323,8 +310,7 @@ class DriveCommands:
         async def heard() -> str:
             status = await self._reach(
                 drive, cia402.SWITCH_ON_DISABLED,
-                lambda s: s.state == cia402.SWITCH_ON_DISABLED or s.faulted, fault_ok=True,
-                by_sdo=True)
+                lambda s: s.state == cia402.SWITCH_ON_DISABLED or s.faulted, fault_ok=True)
             return f'node {drive.node_id} is {status.state}: its power stage is off'
         return await self._stop(drive, cia402.DISABLE_VOLTAGE, heard)
 
@@ -333,8 +319,7 @@ class DriveCommands:
             status = self._service.status(drive.node_id)
             if _stopped(status) or status.state not in cia402.POWERED:
                 return f'node {drive.node_id} is {status.state}: nothing to stop'
-            mark = await self._send(drive, {cia402.CONTROLWORD: cia402.QUICK_STOP},
-                                    by_sdo=True)
+            mark = await self._send(drive, {cia402.CONTROLWORD: cia402.QUICK_STOP})
             status = await self._after(drive, mark, _stopped, fault_ok=True)
             return f'node {drive.node_id} stopped: {status.state}'
         return await self._stop(drive, cia402.QUICK_STOP, heard)
@@ -395,6 +380,7 @@ class DriveCommands:
 
     async def _home(self, drive, _mode: int) -> str:
         await self._change_mode(drive, cia402.HOMING)
+        drive.pp_goal = None  # homing moves the coordinates the set-point was in
         word = drive.controlword & ~(cia402.MODE_BITS | cia402.HALT)
         self._service.set_halted(drive, '')
         if drive.controlword & cia402.NEW_SET_POINT:
@@ -505,13 +491,25 @@ class DriveCommands:
                 cia402.CONTROLWORD: drive.controlword & ~cia402.MODE_BITS})
             await self._after(drive, mark, lambda s: not s.statusword & cia402.MODE_BIT_12)
         bits = cia402.NEW_SET_POINT | cia402.CHANGE_SET_IMMEDIATELY
+        drive.pp_goal = None  # until the drive takes this one: then it is the base
         mark = await self._send(drive, {cia402.TARGET_POSITION: position,
                                         cia402.CONTROLWORD: word | bits})
-        drive.pp_goal = position
         await self._after(drive, mark, lambda s: bool(s.statusword & cia402.MODE_BIT_12))
+        drive.pp_goal = position
         acknowledged = drive.updates - 1
         await self._send(drive, {cia402.CONTROLWORD: word})
         return acknowledged
+
+    async def _halt_answered(self, drive, task: asyncio.Task, reason: str) -> str:
+        """Halt the drive of a sequence ``task`` that ended; return its answer, whatever comes.
+
+        Replaced or shut down while the halt is confirmed, it is answered all the same.
+        """
+        try:
+            return await self._halt_after_cancel(drive, reason)
+        except asyncio.CancelledError:
+            return (f'{reason}; {self._reasons.pop(task, SHUTTING_DOWN)} before the halt was '
+                    f'confirmed')
 
     async def _halt_after_cancel(self, drive, reason: str) -> str:
         """Halt the drive of a cancelled move; return the answer with where it stopped."""

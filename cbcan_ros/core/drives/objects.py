@@ -179,7 +179,9 @@ class DriveObjects:
                     f'node {self.node_id}: a later command changed the controlword before '
                     f'this one was sent in full; the rest was not sent'))
             commanded, held = self.commanded, self._held
-            if any(key not in held for frame in frames for key in frame.held):
+            if (any(key not in held for frame in frames for key in frame.held)
+                    or any(index not in commanded for frame in frames
+                           for index in frame.indexes)):
                 return resolved(SdoResult.failed(
                     f'node {self.node_id} booted before this command was sent in full; the '
                     f'rest was not sent'))
@@ -192,10 +194,14 @@ class DriveObjects:
                     for index, value in carried.items()] + [
                     EntryValue(index, sub, data=held[(index, sub)])
                     for index, sub in frame.held]))
-            if carry_controlword and cia402.CONTROLWORD in commanded:
+            if carry_controlword and write == self._controlword_write:
+                # A synchronous controlword frame is applied a SYNC after the frames before
+                # it: the others are not sent again at once, or the controlword would come
+                # with them, early; waiting ones go out with it all the same.
                 word = encode(cia402.CONTROLWORD, commanded[cia402.CONTROLWORD])
                 self._pdo.carry(self.node_id, [EntryValue(cia402.CONTROLWORD, 0, data=word)],
-                                skip={frame.number for frame in frames})
+                                skip={frame.number for frame in frames},
+                                resend=not frames[-1].synchronous)
         return all_of(futures)
 
     def write_by_sdo(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':
@@ -319,7 +325,10 @@ def _chain(steps: List[Callable[[], 'Future[SdoResult]']]) -> 'Future[SdoResult]
     """
     if not steps:
         return resolved(SdoResult.ok())
-    first = steps[0]()
+    try:
+        first = steps[0]()
+    except Exception as error:  # noqa: BLE001 - a step run from a callback must be answered
+        return resolved(SdoResult.failed(f'the write could not go on: {error!r}'))
     if len(steps) == 1:
         return first
     done: Future = Future()

@@ -341,12 +341,11 @@ class DriveService:
                 return
             drive.read_wanted += 1
             request = drive.read_wanted
-            if boot or first:
+            if boot or first:  # it may have booted unheard: its settings are read again
                 drive.unread_state = ''
+                drive.position_window = drive.position_limits = drive.pp_goal = None
             if boot:  # UNKNOWN until re-read: its feedback waits for that read (_apply)
                 drive.objects.forget()
-                # Its settings may have changed with the boot: read again when needed.
-                drive.position_window = drive.position_limits = drive.pp_goal = None
                 drive.halted_by = ''
                 drive.status = replace(drive.status, state=cia402.UNKNOWN, needs_enable=True,
                                        halted=False)

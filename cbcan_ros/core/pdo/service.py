@@ -221,7 +221,8 @@ class PdoService:
                 return resolved(self._refused(node_id, frame))
             return resolved(self._send(mapping, frame))
 
-    def carry(self, node_id: int, values: Sequence[EntryValue], skip=()) -> None:
+    def carry(self, node_id: int, values: Sequence[EntryValue], skip=(),
+              resend: bool = True) -> None:
         """Put ``values``, written to ``node_id`` another way, into its other RPDOs' frames.
 
         Another way: by SDO, or in RPDO ``skip`` (numbers). So no frame undoes that write (a
@@ -229,10 +230,11 @@ class PdoService:
         SYNC goes out carrying them, and while SYNC is produced a synchronous RPDO's frame is
         sent again at once, since the device keeps the last one it received until the next
         SYNC applies it; at shutdown too (the drives' stops are written after this service
-        stopped, SYNC goes on until after them).
+        stopped, SYNC goes on until after them). ``resend`` False: only frames still to be
+        sent carry them.
         """
         with self._frames:  # a SYNC flush of the frame before these values cannot come last
-            resend = []
+            again = []
             with self._lock:
                 device = self._devices.get(node_id)
                 for number, mapping in (device.rpdos.items() if device else ()):
@@ -248,9 +250,9 @@ class PdoService:
                                                           mapped)
                     except ValueError:  # mapped at another size: no frame of ours has them
                         continue
-                    if mapping.synchronous and self._sync.producing:
-                        resend.append((mapping, device.last_sent[number]))
-            for mapping, frame in resend:
+                    if resend and mapping.synchronous and self._sync.producing:
+                        again.append((mapping, device.last_sent[number]))
+            for mapping, frame in again:
                 self._send(mapping, frame, stopping=True)
 
     def _check(self, node_id: int, number: int, values: Sequence[EntryValue], data: bytes):
