@@ -1,6 +1,6 @@
 """The CiA 402 power state machine of a simulated drive: states, commands, transitions, bits.
 
-Pure logic, no bus: :mod:`durand_drive` feeds it every controlword written and shows its state
+Pure logic, no bus: :mod:`durand.drive` feeds it every controlword written and shows its state
 in the statusword. Masks and values are those of CiA 402 (IEC 61800-7-201).
 """
 

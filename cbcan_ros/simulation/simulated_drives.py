@@ -7,7 +7,7 @@ with its other simulated devices, and says why the drives are missing.
 from typing import Callable, List
 
 # The PDO layouts a simulated drive can have (``simulation.drive_layout``; described in
-# ``durand_drive_pdos``), each by the function there that makes it; the first is the default.
+# ``durand.drive_pdos``), each by the function there that makes it; the first is the default.
 LAYOUTS = {
     'combined': 'default_drive_pdos',
     'vendor': 'vendor_drive_pdos',

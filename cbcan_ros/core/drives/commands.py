@@ -398,7 +398,7 @@ class DriveCommands:
     async def _homed_here(self, drive) -> str:
         """Return the answer of a homing attained; raise when it did not set the position.
 
-        Checked for the methods that home where the axis stands (``drive_arrival``).
+        Checked for the methods that home where the axis stands (``arrival``).
         """
         window = await position_window(drive, SEND_TIMEOUT)
         read = await asyncio.wrap_future(self._service.read_feedback(

@@ -2,7 +2,7 @@
 
 Writes go into the drive's receive PDOs as the PDO service read their mapping
 (``pdo.nodes``); an object no usable RPDO maps is written by SDO. Which frames carry a write,
-and in which order so that its controlword commits nothing early, is ``drive_frames``'s
+and in which order so that its controlword commits nothing early, is ``frames``'s
 plan. A PDO carries every object it
 maps, so each frame is built from what the gateway last commanded for all of them: a
 controlword sent in the same RPDO as the target position and the mode repeats the commanded
@@ -135,7 +135,7 @@ class DriveObjects:
     def write(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':
         """Send ``values`` (object: value) to the drive; resolves when all went out or why not.
 
-        Frames are chosen and ordered by ``drive_frames.plan``: what no usable RPDO carries
+        Frames are chosen and ordered by ``frames.plan``: what no usable RPDO carries
         goes by SDO first, the controlword last. Raises ValueError when a value does not fit
         its object (nothing is sent then). The caller holds the drive's ``sending`` lock:
         frames built from ``commanded`` go out in the order it changed. A part that waits
@@ -236,7 +236,7 @@ class DriveObjects:
         """Read the objects its RPDOs map that the gateway does not command, when not yet.
 
         Once per mapping read (and again after a boot): their bytes go into every frame of
-        those RPDOs as the drive holds them (``drive_frames.usable_frames``); until they are
+        those RPDOs as the drive holds them (``frames.usable_frames``); until they are
         read, those RPDOs are not used. Resolves once they are read (at once when there is
         nothing to read).
         """
@@ -308,7 +308,7 @@ class DriveObjects:
 
     def _plan(self, indexes: List[int], commanded: Dict[int, int],
               controlword_known: bool) -> Plan:
-        """Return how a write of ``indexes`` goes out now (``drive_frames.plan``)."""
+        """Return how a write of ``indexes`` goes out now (``frames.plan``)."""
         if self.node_id not in self._pdo.node_ids or not self._operational():
             return plan(indexes, (), controlword_known)
         _, rpdos = self._pdo.mappings(self.node_id)

@@ -3,14 +3,14 @@
 Each drive of ``drives.nodes`` is followed from the frames it sends: its TPDOs (statusword,
 mode display, actual values), or SDO reads of what no TPDO maps, once a feedback cycle.
 Every statusword updates the drive's state at once, in the thread that received it, and wakes
-what waits on it: a command (``drive_commands``) runs as a coroutine that sends one
+what waits on it: a command (``commands``) runs as a coroutine that sends one
 controlword, awaits the statusword that shows its effect and sends the next, never sleeping
 or polling. Targets from a caller go out at once, from the caller's thread.
 
 Safety lives here, below ROS:
 
 - enabling, and every change of mode, first sets the mode's target to hold the axis
-  (``drive_commands``);
+  (``commands``);
 - in the streaming modes a drive whose targets stop for ``command_timeout`` is halted;
 - the gateway's shutdown (and a managed node's deactivation) sends ``on_shutdown`` to every
   powered drive before the bus closes;
@@ -174,7 +174,7 @@ class DriveService:
         """Move drive ``node_id`` in profile position; return (result future, cancel()).
 
         Succeeds on the drive's target reached within its position window of the goal
-        (``drive_arrival``); ``cancel()`` and ``timeout`` (s, 0 = 60 s) halt the drive and
+        (``arrival``); ``cancel()`` and ``timeout`` (s, 0 = 60 s) halt the drive and
         answer where it stopped. A new move or target for the drive replaces this one.
         """
         reads = self._reads(node_id)
@@ -229,7 +229,7 @@ class DriveService:
         sent.add_done_callback(lambda done: self._log_failed_target(node_id, done))
         return DriveResult(True, 'sent', status)
 
-    # Used by the command sequences (drive_commands), on the drives' event loop.
+    # Used by the command sequences (commands), on the drives' event loop.
 
     def send(self, drive: DriveRecord, values: Dict[int, int], timeout: float,
              reads: Optional[int], enabled: bool = False, halt: Optional[str] = None,
@@ -350,7 +350,7 @@ class DriveService:
                 drive.status = replace(drive.status, state=cia402.UNKNOWN, needs_enable=True,
                                        halted=False)
                 self._tell(drive)
-        if boot:  # a command running ends (drive_commands._until)
+        if boot:  # a command running ends (commands._until)
             self._wake(drive)
         self._runner.submit(self._initial_read(drive, request))
 
@@ -404,7 +404,7 @@ class DriveService:
         if new.faulted and not old.faulted:
             self._runner.submit(self._read_error(drive))
         if changed or cia402.STATUSWORD in values or cia402.VELOCITY_ACTUAL in values:
-            self._wake(drive)  # a halt waits for a velocity (drive_standstill)
+            self._wake(drive)  # a halt waits for a velocity (standstill)
 
     def on_emcy(self, node_id: int, error_code: int) -> None:
         """Take the error code of an EMCY a drive sent (0: its errors are gone)."""

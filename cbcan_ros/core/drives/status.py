@@ -1,7 +1,7 @@
 """What the gateway knows of its CiA 402 drives: settings, status, answers, the record kept.
 
-Shared by the drive service (``drive``), its sequences (``drive_commands``) and its checks
-(``drive_checks``); the ROS layer reads :class:`DriveStatus` and :class:`DriveResult`.
+Shared by the drive service (``drive``), its sequences (``commands``) and its checks
+(``checks``); the ROS layer reads :class:`DriveStatus` and :class:`DriveResult`.
 """
 
 from dataclasses import dataclass, field, replace
@@ -104,7 +104,7 @@ class DriveRecord:
     timeouts: int = 0
     emcy_code: int = 0  # the error code of the last EMCY
     lost_powered: bool = False  # its heartbeat stopped while its power stage was on
-    position_window: Optional[int] = None  # 0x6067 in drive units, once read (drive_arrival)
+    position_window: Optional[int] = None  # 0x6067 in drive units, once read (arrival)
     position_limits: Optional[tuple] = None  # 0x607D (min, max); () none; None not read yet
     profile_velocity: int = 0  # 0x6081 as read when heard: what a move with velocity 0 uses
     pp_goal: Optional[int] = None  # the last PP set-point given since its enable: relative base

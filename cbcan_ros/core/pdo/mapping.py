@@ -1,6 +1,6 @@
 """PDO mappings (CiA 301): what a device maps into each PDO, and the frames it describes.
 
-A mapping is made from the raw parameters read from the device (``pdo_parameters``); a
+A mapping is made from the raw parameters read from the device (``parameters``); a
 frame is decoded and encoded by it bit-exact, any entry width up to 64 bits, with the types
 from the EDS when given, else unsigned.
 """

@@ -1,6 +1,6 @@
 """PDOs (CiA 301 process data) as a service: mappings kept current, frames carried.
 
-For every device served (``pdo.nodes``) the PDO parameters are read (``pdo_parameters``)
+For every device served (``pdo.nodes``) the PDO parameters are read (``parameters``)
 when it is first heard and again after every boot-up message. With ``pdo.configure`` the PDO
 parameters of the device's EDS/DCF file are written first whenever it boots.
 

@@ -3,10 +3,10 @@
 The devices of ``simulation.py`` run on python-canopen, the library our SDO client is built
 on, so a defect the two sides share stays hidden. :class:`DurandDevice` answers with durand's
 SDO server (expedited, segmented, block both ways), NMT slave, heartbeat and EMCY producers,
-on a python-can bus of its own (``durand_network``), with the dictionary of
-``config/simulated_device.eds`` (``durand_dictionary``) and the PDOs it stores
-(``durand_pdos``), on the timers of the scheduler all such devices share
-(``durand_scheduler``).
+on a python-can bus of its own (``network``), with the dictionary of
+``config/simulated_device.eds`` (``dictionary``) and the PDOs it stores
+(``pdos``), on the timers of the scheduler all such devices share
+(``scheduler``).
 
 durand 0.5.0 needs a few guards, kept in those modules and in this one (durand itself is not
 patched). Here:

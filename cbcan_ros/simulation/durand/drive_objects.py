@@ -1,6 +1,6 @@
-"""The object dictionary of the simulated CiA 402 drive (``durand_drive``): indexes, defaults.
+"""The object dictionary of the simulated CiA 402 drive (``drive``): indexes, defaults.
 
-Added to a durand node next to the generic device's objects (``durand_dictionary``), with the
+Added to a durand node next to the generic device's objects (``dictionary``), with the
 range checks a drive makes before it takes a value (SDO abort 0x06090030 otherwise).
 """
 

@@ -37,7 +37,7 @@ from .pdos import PdoConfig
 
 # Transmission types (CiA 301). durand sends a TPDO of type 255 on every write of a mapped
 # object (the drive writes its objects only when they change) and one of type 254 only from its
-# event timer (durand_pdos); both apply an RPDO as it arrives.
+# event timer (pdos); both apply an RPDO as it arrives.
 EVENT_DRIVEN = 255
 TIMER_DRIVEN = 254
 SYNCHRONOUS = 1  # every SYNC: a TPDO answers each SYNC, an RPDO is applied at the next SYNC

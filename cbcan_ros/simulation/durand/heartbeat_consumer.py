@@ -1,6 +1,6 @@
 """A heartbeat consumer (CiA 301, 0x1016) for a simulated durand device; durand has none.
 
-It watches one producer's heartbeat on the device's own bus (``durand_network.BusNetwork``,
+It watches one producer's heartbeat on the device's own bus (``network.BusNetwork``,
 by a hook on 0x700 + producer id) and calls back when the producer has been silent for the
 consumer time, with a timer on the shared scheduler: nothing polls.
 """
