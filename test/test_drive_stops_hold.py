@@ -205,3 +205,27 @@ def test_a_relative_move_after_another_mode_counts_from_where_the_axis_stands(ri
     result = move(axis, 1.0, relative=True).result
     assert result.success, result.message
     assert axis.drive.position == 1500
+
+
+def test_a_target_alone_sends_no_other_frame_again(rig):
+    # RPDOs 1-3 synchronous, RPDO 4 (controlword, target velocity) event-driven: a target
+    # changes no controlword, so the synchronous frames are not sent again (they would go
+    # out at once, between SYNCs, and repeat whatever they held).
+    pdos = tuple(replace(pdo, transmission_type=1)
+                 if pdo.kind == 'rpdo' and pdo.number != 4 else pdo
+                 for pdo in drive_pdos('vendor'))
+    axis = rig(pdos=pdos, **{'sync.period': 0.1})
+    gateway = axis.gateway.node.gateway
+    wait_until(lambda: 4 in gateway.pdo.mappings(NODE)[1], WAIT, 'RPDO 4 read')
+    axis.enable(CSV)
+    two_syncs_pass(axis)
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        assert gateway.drives.target(NODE, 700).success
+        watch(bus, frames, lambda seen: sum(m.arbitration_id == SYNC for m in seen) >= 2,
+              'two SYNCs after the target')
+    finally:
+        bus.shutdown()
+    wait_until(lambda: axis.drive.velocity == 700, WAIT, 'the drive at 700 counts/s')
+    sent = {m.arbitration_id for m in frames} & {0x200 + NODE, 0x300 + NODE, 0x400 + NODE}
+    assert not sent, f'RPDOs sent again for a target alone: {sorted(map(hex, sent))}'
