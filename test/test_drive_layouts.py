@@ -344,3 +344,19 @@ def test_an_rpdo_mapping_an_object_the_gateway_does_not_command_repeats_the_driv
     sent = next(m for m in frames if m.arbitration_id == 0x300 + NODE)
     assert struct.unpack_from('<iH', sent.data) == (1000, 1000)
     assert axis.drive.value(MAX_TORQUE, 0) == struct.pack('<H', 1000)
+
+
+def test_a_cancelled_move_halts_the_drive_where_it_is(rig, layout):
+    axis = rig(pdos=layout_pdos(layout))
+    axis.enable(PP)
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    goal = wait_for_future(axis.mover.send_goal_async(DriveMove.Goal(
+        node_id=NODE, position=100.0, velocity=1.0)), WAIT)
+    assert goal.accepted
+    wait_until(lambda: axis.drive.position > 100, WAIT, 'the move under way')
+    wait_for_future(goal.cancel_goal_async(), WAIT)
+    result = wait_for_future(goal.get_result_async(), WAIT)
+    assert result.status == GoalStatus.STATUS_CANCELED
+    assert 'halted at position' in result.result.message, result.result.message
+    assert axis.drive.velocity == 0 and axis.drive.statusword & 0x100
+    assert axis.drive.position < 100_000
