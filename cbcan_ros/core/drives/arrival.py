@@ -12,10 +12,10 @@ whose method homes where the axis stands (35, 37) only when the position is the 
 """
 
 import asyncio
-import struct
 from typing import Optional, Tuple
 
 from . import cia402
+from .objects import decode
 
 # Aborts that say the drive has no such object (or sub-index): it has none of the setting.
 ABSENT = frozenset({0x06020000, 0x06090011})
@@ -40,7 +40,7 @@ async def position_window(drive, timeout: float) -> int:
         if drive.read_wanted != reads:  # it booted or was lost meanwhile: not kept
             return DEFAULT_WINDOW
         if result.success:
-            window = _unpack('<I', result.data)
+            window = decode(cia402.POSITION_WINDOW, result.data)
             drive.position_window = DEFAULT_WINDOW if window == WINDOW_OFF else window
         elif result.abort_code in ABSENT:
             drive.position_window = DEFAULT_WINDOW
@@ -68,7 +68,8 @@ async def software_limits(drive, timeout: float) -> Optional[Tuple[int, int]]:
             raise LimitsUnknown(f'node {drive.node_id}: its software position limits '
                                 f'(0x607D) could not be read ({failed.message}); nothing was '
                                 f'sent')
-        lowest, highest = (None if failed else _unpack('<i', result.data)
+        lowest, highest = (None if failed else decode(cia402.SOFTWARE_POSITION_LIMIT,
+                                                      result.data)
                            for result in results)
         drive.position_limits = ((lowest, highest) if failed is None and lowest < highest
                                  else ())
@@ -77,11 +78,6 @@ async def software_limits(drive, timeout: float) -> Optional[Tuple[int, int]]:
 
 class LimitsUnknown(Exception):
     """The software position limits could not be read: the message says why."""
-
-
-def _unpack(fmt: str, data: bytes) -> int:
-    size = struct.calcsize(fmt)
-    return struct.unpack(fmt, bytes(data[:size]).ljust(size, b'\0'))[0]
 
 
 def outside_limits(node_id: int, target: int, limits: Optional[Tuple[int, int]]) -> str:

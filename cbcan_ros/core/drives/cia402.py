@@ -38,6 +38,7 @@ FORMATS = {
     TARGET_POSITION: '<i', PROFILE_VELOCITY_OBJECT: '<I', TARGET_VELOCITY: '<i',
     SUPPORTED_MODES: '<I', CONSUMER_HEARTBEAT: '<I', POSITION_WINDOW: '<I',
     HOME_OFFSET: '<i', HOMING_METHOD: '<b', ABORT_CONNECTION_OPTION: '<h',
+    SOFTWARE_POSITION_LIMIT: '<i',  # each of its two sub-entries
 }
 
 # States: (statusword mask, value), checked in this order.

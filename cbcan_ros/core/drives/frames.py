@@ -100,16 +100,13 @@ def plan(values: Sequence[int], frames: Sequence[Frame], controlword_known: bool
     candidates = [frame for frame in frames if set(frame.indexes) & set(wanted)]
     coverable = {index for frame in candidates for index in frame.indexes} & set(wanted)
     has_controlword = cia402.CONTROLWORD in wanted
+    # The controlword by SDO is applied at once: everything before it goes by SDO too.
+    all_by_sdo = Plan(tuple(sorted(wanted, key=lambda index: index == cia402.CONTROLWORD)), ())
     if has_controlword and cia402.CONTROLWORD not in coverable:
-        # The controlword by SDO is applied at once: everything before it goes by SDO too.
-        ordered = [index for index in wanted if index != cia402.CONTROLWORD]
-        return Plan(tuple(ordered + [cia402.CONTROLWORD]), ())
+        return all_by_sdo
     chosen = _cover(candidates, coverable, has_controlword, controlword_known)
     if chosen is None:
-        if has_controlword:
-            ordered = [index for index in wanted if index != cia402.CONTROLWORD]
-            return Plan(tuple(ordered + [cia402.CONTROLWORD]), ())
-        return Plan(tuple(wanted), ())
+        return all_by_sdo
     by_sdo = tuple(index for index in wanted if index not in coverable)
     return Plan(by_sdo, chosen)
 
