@@ -22,7 +22,10 @@ patched). Here:
   (boot-up, heartbeats, SDO server on the new id), but the SDO guards here stay keyed to
   the old id: they follow the id on every boot.
 - Its NMT slave boots again on a reset but keeps every value: a reset here restores the
-  defaults first.
+  defaults first, or the values stored with 0x1010:1 "save" (its PDOs as ``pdos``
+  configures them); 0x1011:1 "load" drops the stored values, so the next reset restores the
+  factory defaults. The stored values outlive ``stop()``/``start()`` (a power cycle), as a
+  device's non-volatile memory does.
 """
 
 import struct
@@ -47,10 +50,13 @@ from .dictionary import (
     HEARTBEAT_INDEX,
     IDENTITY,
     restore_defaults,
+    RESTORE_INDEX,
+    SAVES_ON_COMMAND,
     SLOW_INDEX,
+    STORE_INDEX,
 )
 from .network import BusNetwork
-from .pdos import PdoConfig, PDOS, StoredPdos, TPDO_COMMUNICATION
+from .pdos import EVENT_TIMER_SUB, PdoConfig, PDOS, StoredPdos, TPDO_COMMUNICATION
 from .scheduler import shared_scheduler
 
 EMCY_INHIBIT_INDEX = 0x1015
@@ -73,6 +79,10 @@ BLOCK_UPLOAD_ACK = 0xA2
 BLOCK_UPLOAD_END_N7 = 0xDD
 BLOCK_UPLOAD_END_N0 = 0xC1
 SDO_ABORT = 0x80
+SAVE = int.from_bytes(b'save', 'little')  # the signatures 0x1010 and 0x1011 take (CiA 301)
+LOAD = int.from_bytes(b'load', 'little')
+ABORT_NOT_STORED = 0x08000020
+NOT_STORED = range(0x1400, 0x1C00)  # the PDO parameters: ``pdos`` sets them up at each boot
 
 
 class DurandDevice:
@@ -104,6 +114,7 @@ class DurandDevice:
         self.stored: Dict[str, Optional[int]] = {}
         self._sdo_cob = SDO_RX_BASE + node_id
         self._pdos = StoredPdos(pdos)
+        self._factory_pdos = tuple(pdos)
         self.slow_read_delay = slow_read_delay
         self._bus_options = dict(interface=interface, channel=channel, **(bus_options or {}))
         self.node: Optional[durand.Node] = None
@@ -113,6 +124,7 @@ class DurandDevice:
         self._guard_toggle = 0
         self._last_sdo_frame = 0.0
         self._slow_value = 0
+        self._saved: Dict[Tuple[int, int], object] = {}  # 0x1010 "save": kept across boots
 
     @property
     def node_id(self) -> int:
@@ -273,6 +285,38 @@ class DurandDevice:
         od.set_read_callback(SLOW_INDEX, 0, self._read_slow)
         self._slow_value = od.lookup(SLOW_INDEX, 0).value
         self._pdos.install(self.node)
+        for index, signature, command in ((STORE_INDEX, SAVE, self._save),
+                                          (RESTORE_INDEX, LOAD, self._forget_saved)):
+            od.validate_callbacks[(index, 1)].add(
+                lambda value, i=index, s=signature: self._check_signature(i, s, value))
+            od.update_callbacks[(index, 1)].add(lambda _value, c=command: c())
+            od.set_read_callback(index, 1, lambda: SAVES_ON_COMMAND)
+
+    @staticmethod
+    def _check_signature(index: int, signature: int, value: int) -> None:
+        if value != signature:  # CiA 301: any other value is refused with 0x08000020
+            raise SDODomainAbort(ABORT_NOT_STORED, (index, 1))
+
+    def _save(self) -> None:
+        od = self.node.object_dictionary
+        self._saved = {(index, subindex): od.read(index, subindex)
+                       for index, obj in od if index not in NOT_STORED
+                       and index not in (STORE_INDEX, RESTORE_INDEX)
+                       for subindex, variable in ([(0, obj)] if isinstance(obj, Variable)
+                                                  else list(obj))
+                       if variable.access in ('rw', 'wo') and od.has_value(index, subindex)}
+
+        node = self.node
+        self._pdos.configs = tuple(
+            PdoConfig(kind, number, tuple(pdo.mapping), pdo.transmission_type,
+                      od.read(TPDO_COMMUNICATION + number - 1, EVENT_TIMER_SUB)
+                      if kind == 'tpdo' else 0, pdo.enable)
+            for kind, pdos in (('tpdo', node.tpdo), ('rpdo', node.rpdo))
+            for number, pdo in enumerate(pdos[:PDOS], 1))
+
+    def _forget_saved(self) -> None:
+        self._saved = {}
+        self._pdos.configs = self._factory_pdos
 
     def _boot(self, clear: range, durand_reset: Callable[[], None]) -> None:
         """Boot as after power-on or reset: objects in ``clear`` return to their defaults."""
@@ -281,13 +325,20 @@ class DurandDevice:
         # Nor a PDO: a device taking a reset sends nothing more before its boot-up, while
         # restoring its defaults here would send every TPDO of an operational one.
         self.node.nmt.set_state(StateEnum.STOPPED)
-        restore_defaults(od, clear, keep=HEARTBEAT_INDEX)
+        # 0x1010 and 0x1011 are commands: they hold no value of their own to restore.
+        restore_defaults(od, clear, keep=(HEARTBEAT_INDEX, STORE_INDEX, RESTORE_INDEX))
+        heartbeat = HEARTBEAT_DEFAULT
+        for (index, subindex), value in self._saved.items():
+            if index == HEARTBEAT_INDEX:
+                heartbeat = value
+            elif index in clear:
+                od.write(index, subindex, value)
         self._drop_sdo_transfers()
         self._guard_toggle = 0
         if clear.start <= TPDO_COMMUNICATION < clear.stop:
             self._pdos.apply()
         durand_reset()  # state 0 with the boot-up message, then pre-operational
-        od.write(HEARTBEAT_INDEX, 0, HEARTBEAT_DEFAULT)  # starts heartbeats at the default
+        od.write(HEARTBEAT_INDEX, 0, heartbeat)  # starts heartbeats (the default, or saved)
 
     def _on_nmt_frame(self, durand_handler, cob_id: int, data: bytes) -> None:
         # durand's NMT slave boots again on a reset but keeps every value and the old

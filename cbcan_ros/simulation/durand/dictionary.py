@@ -4,7 +4,7 @@ Built into a durand node in place of the few objects durand puts there itself; a
 the defaults from it.
 """
 
-from typing import Dict, Sequence
+from typing import Container, Dict, Sequence
 
 from durand.datatypes import DatatypeEnum as DT
 from durand.object_dictionary import ObjectDictionary, Record, Variable
@@ -18,6 +18,10 @@ HEARTBEAT_INDEX = 0x1017
 HEARTBEAT_DEFAULT = 200  # ms, as config/simulated_device.eds
 IDENTITY_INDEX = 0x1018
 IDENTITY = (0x0, 0x51, 0x10000, 0x0)  # 0x1018:1..4 as config/simulated_device.eds
+STORE_INDEX = 0x1010
+RESTORE_INDEX = 0x1011
+CONFIGURATION_DATE_INDEX = 0x1020
+SAVES_ON_COMMAND = 1  # what 0x1010:1 and 0x1011:1 read (CiA 301: saves/restores on command)
 
 ABORT_LENGTH_TOO_HIGH = 0x06070012
 
@@ -28,11 +32,16 @@ OBJECTS = (
     (0x1008, 0, DT.VISIBLE_STRING, 'const', b'cbcan simulated device',
      'Manufacturer device name'),
     (0x100A, 0, DT.VISIBLE_STRING, 'const', b'1.0', 'Manufacturer software version'),
+    (STORE_INDEX, 1, DT.UNSIGNED32, 'rw', SAVES_ON_COMMAND, 'Save all parameters'),
+    (RESTORE_INDEX, 1, DT.UNSIGNED32, 'rw', SAVES_ON_COMMAND,
+     'Restore all default parameters'),
     (HEARTBEAT_INDEX, 0, DT.UNSIGNED16, 'rw', HEARTBEAT_DEFAULT, 'Producer heartbeat time'),
     (0x1018, 1, DT.UNSIGNED32, 'ro', 0x0, 'Vendor-ID'),
     (0x1018, 2, DT.UNSIGNED32, 'ro', 0x51, 'Product code'),
     (0x1018, 3, DT.UNSIGNED32, 'ro', 0x10000, 'Revision number'),
     (0x1018, 4, DT.UNSIGNED32, 'ro', 0x0, 'Serial number'),
+    (CONFIGURATION_DATE_INDEX, 1, DT.UNSIGNED32, 'rw', 0, 'Configuration date'),
+    (CONFIGURATION_DATE_INDEX, 2, DT.UNSIGNED32, 'rw', 0, 'Configuration time'),
     (0x2000, 0, DT.UNSIGNED8, 'rw', 0x12, 'Demo UNSIGNED8'),
     (0x2001, 0, DT.UNSIGNED16, 'rw', 0x1234, 'Demo UNSIGNED16'),
     (0x2002, 0, DT.UNSIGNED32, 'rw', 0x12345678, 'Demo UNSIGNED32'),
@@ -44,7 +53,9 @@ OBJECTS = (
     (SLOW_INDEX, 0, DT.UNSIGNED32, 'ro', 0x51057, 'Slow value (answers after a delay)'),
 )
 
-RECORD_NAMES = {0x1018: 'Identity object'}
+RECORD_NAMES = {0x1018: 'Identity object', STORE_INDEX: 'Store parameters',
+                RESTORE_INDEX: 'Restore default parameters',
+                CONFIGURATION_DATE_INDEX: 'Verify configuration'}
 
 
 def add_objects(od: ObjectDictionary, identity: Sequence[int]) -> None:
@@ -66,10 +77,10 @@ def add_objects(od: ObjectDictionary, identity: Sequence[int]) -> None:
     od.validate_callbacks[(DOMAIN_INDEX, 0)].add(_check_domain_size)
 
 
-def restore_defaults(od: ObjectDictionary, clear: range, keep: int) -> None:
-    """Return the objects in ``clear`` to their defaults, all but ``keep``."""
+def restore_defaults(od: ObjectDictionary, clear: range, keep: Container[int]) -> None:
+    """Return the objects in ``clear`` to their defaults, all but those of ``keep``."""
     for index, obj in od:
-        if index not in clear or index == keep:
+        if index not in clear or index in keep:
             continue
         for subindex, variable in ([(0, obj)] if isinstance(obj, Variable) else list(obj)):
             if od.has_value(index, subindex):

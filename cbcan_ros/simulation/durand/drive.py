@@ -80,6 +80,10 @@ class Homing(enum.Enum):
     ERROR = 'error'
 
 
+# 0x1018:1..4, as config/cia402_drive.eds gives them (a boot checks them against the file).
+DRIVE_IDENTITY = (0x0, 0x402, 0x10000, 0x0)
+
+
 class DurandDrive(DurandDevice):
     """One simulated CiA 402 servo drive on the bus, built on durand.
 
@@ -105,6 +109,7 @@ class DurandDrive(DurandDevice):
         unknown = set(modes) - set(cia402.ALL_MODES)
         if unknown:
             raise ValueError(f'modes of operation {sorted(unknown)} are not simulated')
+        device_options.setdefault('identity', DRIVE_IDENTITY)
         super().__init__(node_id, **device_options)
         self.modes = frozenset(modes)
         self.tick = tick

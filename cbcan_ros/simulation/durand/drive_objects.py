@@ -39,6 +39,7 @@ SUPPORTED_MODES = 0x6502
 # Not of CiA 402: writing an error code here makes the simulated drive fault with it, as a
 # real drive does on an over-current, so a fault can be tried from outside its process.
 SIMULATED_FAULT = 0x2FFF
+INTERPOLATION_TIME_PERIOD = 0x60C2
 
 ABORT_VALUE_RANGE = 0x06090030
 
@@ -95,6 +96,11 @@ def add_drive_objects(od: ObjectDictionary, modes: Iterable[int]) -> None:
     limits[1] = Variable(DT.INTEGER32, 'rw', -(1 << 31), name='Min position limit')
     limits[2] = Variable(DT.INTEGER32, 'rw', (1 << 31) - 1, name='Max position limit')
     od[SOFTWARE_POSITION_LIMIT] = limits
+    # The cycle time of the cyclic modes, as drives with CSP have it: value x 10^index s.
+    period = Record(name='Interpolation time period')
+    period[1] = Variable(DT.UNSIGNED8, 'rw', 1, name='Interpolation time period value')
+    period[2] = Variable(DT.INTEGER8, 'rw', -3, name='Interpolation time index')
+    od[INTERPOLATION_TIME_PERIOD] = period
     od[CONSUMER_HEARTBEAT] = Array(Variable(DT.UNSIGNED32, 'rw', 0,
                                             name='Consumer heartbeat time'),
                                    length=1, name='Consumer heartbeat time')
