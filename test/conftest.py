@@ -52,6 +52,7 @@ from cbcan_ros.msg import NodeStates  # noqa: E402
 from cbcan_ros.ros.interface import NODE_STATES_QOS, SERVICE_QOS  # noqa: E402
 from cbcan_ros.ros.node import CbcanNode  # noqa: E402
 from cbcan_ros.srv import (  # noqa: E402
+    Boot,
     DriveCommand,
     LssConfigure,
     LssInquire,
@@ -77,6 +78,7 @@ SERVICE_TYPES = {
     'pdo_write': PdoWrite,
     'drive_command': DriveCommand,
     'send_frames': SendFrames,
+    'boot': Boot,
 }
 
 DEFAULT_DEVICES = [2, 3, 5]

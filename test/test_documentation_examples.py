@@ -11,7 +11,9 @@ Each fenced block of every page is one of:
 - ``yaml``: gateway parameters are checked as the gateway checks its parameters at start
   (it refuses a name it does not declare), and the one naming node 5's EDS is given to that
   gateway; the diagnostic_aggregator configuration must name the status items the gateway
-  publishes;
+  publishes; a bus description (``master:``, ``nodes:``) is read and its boots worked out as
+  at start, with the shipped EDS files under the names it gives, and uses no key the gateway
+  leaves out;
 - listed in ``NOT_RUN`` with the reason it cannot run here.
 A block that is none of these fails the test, so a new block is run or listed. Every Python
 block, run or not, is complete as printed: ruff finds no undefined name in it. Every
@@ -36,6 +38,9 @@ import pytest
 from rclpy.node import Node
 import yaml
 
+from cbcan_ros.core import eds
+from cbcan_ros.core.boot.description import load as load_bus_description
+from cbcan_ros.core.boot.plan import boot_settings
 from cbcan_ros.ros.cli import build_parser, Client, DEFAULT_GATEWAY, run
 from cbcan_ros.ros.client import GatewayError
 from cbcan_ros.ros.config import NodeParameters
@@ -56,6 +61,11 @@ AGGREGATOR_GATEWAY = '/can0/cbcan'
 # The EDS path the parameter example of the command line page gives; the test puts a copy of
 # config/simulated_device.eds at a path of its own and reads the page with that path.
 DOCUMENTED_EDS = '/home/robot/eds/drive_5.eds'
+# The folder and files a bus description example names; the test puts the shipped EDS files
+# there under those names.
+DOCUMENTED_DCF_PATH = '/robot/eds'
+DOCUMENTED_DCFS = {'io_module.eds': ROOT / 'config' / 'simulated_device.eds',
+                   'cia402_drive.eds': ROOT / 'config' / 'cia402_drive.eds'}
 SCRIPT_TIMEOUT = 120.0
 
 # A piece of the block that names it: why it does not run here.
@@ -189,6 +199,8 @@ def kind(block: Block) -> str:
         keys = list(yaml.safe_load(block.text))
         if keys == ['analyzers']:
             return 'aggregator'
+        if 'master' in keys or 'nodes' in keys:
+            return 'bus'
         if all(key.startswith('/') for key in keys):
             return 'parameters'
     if block.language == 'bash' and all(
@@ -300,6 +312,23 @@ def parameter_file(block: Block, folder: pathlib.Path) -> pathlib.Path:
     path = folder / f'parameters_{block.name}.yaml'
     path.write_text(block.text.replace(DOCUMENTED_EDS, str(eds)))
     return path
+
+
+@pytest.mark.parametrize('block', blocks_of('bus'), ids=lambda block: block.name)
+def test_bus_description_examples_are_taken_by_the_gateway(block, tmp_path):
+    for name, source in DOCUMENTED_DCFS.items():
+        shutil.copy(source, tmp_path / name)
+    path = tmp_path / 'bus.yml'
+    path.write_text(block.text.replace(f'dcf_path: {DOCUMENTED_DCF_PATH}',
+                                       f'dcf_path: {tmp_path}'))
+    description = load_bus_description(str(path))
+    assert description.unsupported == (), f'{block}: {description.unsupported}'
+    dictionaries = {device.node_id: eds.load(device.dcf, device.node_id)
+                    for device in description.devices}
+    drives = [device.node_id for device in description.devices if device.driver == 'drive']
+    settings = boot_settings(description, (), dictionaries, description.master.node_id,
+                             lambda node_id: 300, drives, list(dictionaries))
+    assert [plan.node_id for plan in settings.plans] == sorted(dictionaries)
 
 
 @pytest.mark.parametrize('block', blocks_of('parameters'), ids=lambda block: block.name)

@@ -161,6 +161,10 @@ def test_an_nmt_start_to_a_running_drive_leaves_its_targets_on_the_rpdos(rig):  
     drives = running(axis)
     monitor = axis.gateway.node.gateway.monitor
     wait_until(lambda: monitor.operational(NODE), WAIT, 'the drive heard OPERATIONAL')
+    # Until the PDO service has read the mapping (begun at the first heartbeat heard, which
+    # may be the one just waited for), every target goes by SDO, NMT start or not.
+    wait_until(lambda: 2 in axis.gateway.node.gateway.pdo.mappings(NODE)[1], WAIT,
+               "the drive's RPDO 2 read")
     bus, frames = axis.gateway.raw_bus(), []
     try:
         assert axis.gateway.call('nmt_command', node_id=0, command=1).success

@@ -364,9 +364,12 @@ def test_pdo_configure_refused_by_read_only_still_reads_the_devices_mapping(make
                                read_only=True)
         device.stop()
         device.start()  # power cycled: it boots (read_only refuses an NMT reset)
-        wait_until(lambda: any('PDO parameters not written' in record.message and
+        wait_until(lambda: any('boot failed (CiA 302-2 error J)' in record.message and
+                               '0x1400:1 (RPDO 1)' in record.message and
                                '0x08000021' in record.message for record in caplog.records),
                    PROMPT, 'the refused configuration logged')
+        boot = gateway.node.gateway.boot.states()[0]
+        assert (boot.node_id, boot.state, boot.error_status) == (10, 'FAILED', 'J'), boot
         wait_until(lambda: gateway.node.gateway.pdo.mappings(10)[0].get(1) is not None,
                    PROMPT, "the device's own mapping read")
         assert [entry.index for entry in gateway.node.gateway.pdo.mappings(10)[0][1].entries] \

@@ -157,7 +157,7 @@ def test_a_frame_built_on_the_layout_before_a_boot_is_not_sent_on_the_new_one():
                                   [TARGET << 16 | 0x20, CONTROLWORD << 16 | 0x10])}
     service._parameters.read = lambda node_id, dictionary: ({}, reordered)
     device = service._devices[NODE]
-    service._read_device(device, device.wanted, False)
+    service._read_device(device, device.wanted)
     sync.sync()
     result = written.result(WAIT)
     assert not result.success and 'mapping changed' in result.message, result.message
@@ -173,7 +173,7 @@ def test_a_write_waiting_on_a_layout_read_again_is_answered_not_sent():
                                   [TARGET << 16 | 0x20, CONTROLWORD << 16 | 0x10])}
     service._parameters.read = lambda node_id, dictionary: ({}, reordered)
     device = service._devices[NODE]
-    service._read_device(device, device.wanted, False)
+    service._read_device(device, device.wanted)
     after = service.write(NODE, 1, [EntryValue(TARGET, 0, 9)])
     sync.sync()
     result = before.result(WAIT)

@@ -17,6 +17,9 @@ import canopen
 from canopen import objectdictionary as od
 
 from . import eds, nmt
+from .boot.description import BusDescription
+from .boot.plan import boot_settings, HEARTBEAT_PERIODS
+from .boot.service import BootService
 from .bus import BusDown, BusStatus, BusSupervisor
 from .canopen_gaps import version_problem
 from .canopen_gaps.local_node import without_heartbeat_producer
@@ -33,7 +36,7 @@ from .raw.frames import canopen_ids, echoes, RawFrames, RawSettings
 from .receive_buffer import deepen_receive_buffer
 from .sdo import abort_codes
 from .sdo.channel import SdoChannel, SdoStatistics
-from .sdo.request_queue import Deadlines, resolved
+from .sdo.request_queue import answer, Deadlines, resolved
 from .sdo.requests import Access, batch_refusal, check_node_id, one_each, refusal, SdoResult
 from .sdo.transfer import run_local
 from .sdo.write_protection import WriteProtection
@@ -67,7 +70,7 @@ class GatewayConfig:
     bus_options: Dict[str, object] = field(default_factory=dict)
     lss_probe_timeout: float = 0.0  # 0: derived from the bit rate
     pdo_nodes: Tuple[int, ...] = ()
-    pdo_configure: bool = False
+    pdo_configure: bool = False  # the PDO parameters of each one's file written at each boot
     device_files: Dict[int, str] = field(default_factory=dict)  # node id: EDS/DCF path
     sync_period: float = 0.0
     sync_counter_overflow: int = 0
@@ -75,6 +78,8 @@ class GatewayConfig:
     heartbeat_period: float = 0.1
     drives: DriveSettings = DriveSettings()  # its nodes are watched and PDO-served as well
     raw: RawSettings = RawSettings()  # raw CAN frames beside CANopen (raw.filters, send_allow)
+    # Every device it names checked, configured and started at each boot (bus_config)
+    bus_description: Optional[BusDescription] = None
 
 
 @dataclass(frozen=True)
@@ -166,11 +171,23 @@ class Gateway:
         self.sync = SyncProducer(self.bus, self.network, config.sync_period,
                                  config.sync_counter_overflow)
         pdo_nodes = {*config.pdo_nodes, *drives}
+        described = {device.node_id for device in (
+            config.bus_description.devices if config.bus_description else ())}
+        dictionaries = {node_id: eds.load(path, node_id) for node_id, path
+                        in config.device_files.items()
+                        if node_id in pdo_nodes or node_id in described}
+        boots = boot_settings(
+            config.bus_description, sorted(pdo_nodes) if config.pdo_configure else (),
+            dictionaries, own_id,
+            lambda node_id: round(1000 * (config.drives.consumer_time if node_id in drives
+                                          else HEARTBEAT_PERIODS * config.heartbeat_period)),
+            drives, pdo_nodes,
+            drives if config.drives.abort_connection is not None else ())
         self.pdo = PdoService(self.network, sorted(pdo_nodes), self.sdo_batch,
                               config.write_protection, self.sync,
-                              {node_id: eds.load(path, node_id) for node_id, path
-                               in config.device_files.items() if node_id in pdo_nodes},
-                              config.pdo_configure)
+                              {node_id: dictionaries[node_id] for node_id in pdo_nodes
+                               if node_id in dictionaries},
+                              [plan.node_id for plan in boots.plans if plan.pdos and plan.boot])
         self.drives = DriveService(self.network, config.drives, self.monitor, self.pdo,
                                    lambda accesses, timeout: self._batch(accesses, timeout,
                                                                          True),
@@ -178,10 +195,14 @@ class Gateway:
                                    self.heartbeat.beat_now)
         self.emcy.add_listener(lambda emergency: self.drives.on_emcy(
             emergency.node_id, emergency.error_code))
+        self._deadlines = Deadlines()
+        self.boot = BootService(self.network, boots, self.sdo_batch, self.nmt_command,
+                                self.pdo, self.monitor, self._deadlines, config.sdo_timeout,
+                                self.drives.enabled)
+        self.drives.refuse_enable_when(self.boot.refusal)
         self.raw = RawFrames(self.bus, config.raw, config.write_protection,
                              lambda: canopen_ids(self.pdo),
                              echoes(config.interface, config.bus_options))
-        self._deadlines = Deadlines()
         self.lss = LssMaster(
             self.network, self._deadlines,
             probe_wait(config.interface, config.bitrate, config.lss_probe_timeout),
@@ -218,6 +239,7 @@ class Gateway:
         self.lss.start()
         self.bus.start()
         self.heartbeat.start()  # on the open bus, so the first beat goes out
+        self.boot.start()
 
     def set_operational(self, active: bool) -> None:
         """Say OPERATIONAL (active) or PRE_OPERATIONAL (a managed node inactive) in heartbeats."""
@@ -235,7 +257,9 @@ class Gateway:
                 return
             self._closing = True
             self._stopping_drives = True
-        # The PDO service first: its mapping reads, refused from here on, are no failures.
+        # The boots and the PDO service first: nothing more is written for a boot, and
+        # mapping reads, refused from here on, are no failures.
+        self.boot.stop()
         self.pdo.stop()
         # The drives' stop commands go next, while the bus is open; callers' requests are
         # refused from here on, the drive service's are taken until its stops are sent.
@@ -270,17 +294,19 @@ class Gateway:
         """Write ``data`` to ``index:subindex`` of ``node_id`` (0 = own dictionary)."""
         return self._single(Access(node_id, index, subindex, True, bytes(data)), timeout)
 
-    def sdo_batch(self, accesses: Sequence[Access],
-                  timeout: float = 0.0) -> 'Future[List[SdoResult]]':
+    def sdo_batch(self, accesses: Sequence[Access], timeout: float = 0.0,
+                  stop=None) -> 'Future[List[SdoResult]]':
         """Run ``accesses``: in order per device, devices in parallel; one result each.
 
         The timeout bounds the whole batch. Each device's part waits in that device's queue
         as one request. A batch of more than ``sdo.MAX_BATCH`` accesses is refused whole.
+        ``stop(results so far)``, asked before each access of a device's part is sent, says
+        why the rest of that part must not be sent, or None.
         """
-        return self._batch(accesses, timeout, False)
+        return self._batch(accesses, timeout, False, stop)
 
     def _batch(self, accesses: Sequence[Access], timeout: float,
-               drive_stop: bool) -> 'Future[List[SdoResult]]':
+               drive_stop: bool, stop=None) -> 'Future[List[SdoResult]]':
         """Run a batch; ``drive_stop``: the drive service's, taken while it stops the drives."""
         refused = batch_refusal(accesses, timeout)
         if refused is not None:
@@ -298,7 +324,8 @@ class Gateway:
         done: Future = Future()
         parts = {node_id: self._channel_for(node_id, len(positions), lambda channel, p=positions:
                                             channel.batch([accesses[i] for i in p],
-                                                          timeout or self.config.sdo_timeout),
+                                                          timeout or self.config.sdo_timeout,
+                                                          stop),
                                             drive_stop)
                  for node_id, positions in per_device.items()}
         remaining = [len(parts)]
@@ -310,8 +337,8 @@ class Gateway:
             with lock:
                 remaining[0] -= 1
                 finished = remaining[0] == 0
-            if finished:
-                done.set_result(results)
+            if finished:  # a caller may have cancelled it (asyncio.wrap_future does)
+                answer(done, results)
 
         if not parts:
             done.set_result(results)
@@ -360,6 +387,7 @@ class Gateway:
         return bus
 
     def _on_bus_change(self, status: BusStatus) -> None:
+        self.boot.on_bus_change(status)
         if status.up:
             return
         with self._lock:

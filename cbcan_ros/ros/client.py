@@ -24,10 +24,12 @@ from typing import NamedTuple, Optional, Sequence, Union
 
 from rclpy.node import Node
 
+from ..core.boot.service import DEFAULT_CALL_TIMEOUT
 from ..core.sdo.requests import MAX_TIMEOUT
 from ..core.values import check_type, decode_value, encode, Value
-from ..msg import NodeStates, SdoAccess
-from ..srv import NmtCommand, NmtState, SdoBatch, SdoRead, SdoWrite
+from ..msg import BootStates, NodeStates, SdoAccess
+from ..srv import Boot, NmtCommand, NmtState, SdoBatch, SdoRead, SdoWrite
+from .boot import BOOT_STATES_QOS
 from .interface import NODE_STATES_QOS
 from .service_caller import (
     ANSWER_MARGIN,
@@ -157,6 +159,7 @@ class GatewayClient(ServiceCaller):
     def __init__(self, node: Node, gateway: str = DEFAULT_GATEWAY, wait: float = DEFAULT_WAIT):
         super().__init__(node, gateway, wait)
         self._latest_states = None
+        self._latest_boots = None
 
     def subscribe_states(self, callback):
         """Call ``callback(NodeStates)`` on ``node``'s executor for every state change.
@@ -279,6 +282,43 @@ class GatewayClient(ServiceCaller):
 
     states = blocking(_states)
     states_async = awaitable(_states)
+
+    def _boot(self, node_id: int = 0, timeout: float = 0.0):
+        """Run the boot of ``node_id`` again (0: every device); return the Boot answer.
+
+        Its ``states`` (one ``BootState`` each) say what each boot found; raises
+        RequestFailed when a boot failed or was refused. ``timeout``: seconds for the boots
+        (0: 30 s).
+        """
+        response = yield from self._call(Boot, 'boot', Boot.Request(
+            node_id=node_id, timeout=float(timeout)),
+            (timeout or DEFAULT_CALL_TIMEOUT) + ANSWER_MARGIN)
+        if not response.success:
+            raise RequestFailed(f'boot of {f"node {node_id}" if node_id else "every device"}',
+                                response)
+        return response
+
+    boot = blocking(_boot)
+    boot_async = awaitable(_boot)
+
+    def _boot_states(self):
+        """Return the latest ``boot_states`` message (every booted device, its boot)."""
+        with self._lock:
+            subscribed = self._latest_boots is not None
+            if not subscribed:
+                self._latest_boots = []
+        if not subscribed:
+            self._own.create_subscription(BootStates, f'{self.gateway}/boot_states',
+                                          self._latest_boots.append, BOOT_STATES_QOS)
+        if not (yield self._when(lambda: self._latest_boots, self.wait)):
+            raise GatewayUnavailable(f'no boot states from {self.gateway} within '
+                                     f'{self.wait:g} s: is cbcan_node running?')
+        latest = self._latest_boots[-1]
+        del self._latest_boots[:-1]
+        return latest
+
+    boot_states = blocking(_boot_states)
+    boot_states_async = awaitable(_boot_states)
 
 
 __all__ = ['GatewayClient', 'GatewayError', 'GatewayUnavailable', 'NMT_COMMANDS', 'Read',

@@ -16,7 +16,7 @@ from ..core import eds
 from ..core.gateway import GatewayConfig
 from ..core.sdo.write_protection import RULE_FORMAT, WriteProtection
 from ..simulation.simulated_drives import LAYOUTS
-from . import drive_parameters, raw_parameters
+from . import boot_parameters, drive_parameters, raw_parameters
 from . import parameter_checks as checks
 
 
@@ -36,7 +36,11 @@ class NodeParameters:
     def __init__(self, node: Node):
         self._node = node
         self._declared: List[str] = []
+        self._defaults: Dict[str, object] = {}
         self.warnings: List[str] = []  # doubtful values, logged by gateway_config()
+        # First: what the bus description names decides which node_<id> parameters exist.
+        boot_parameters.describe(self._declare)
+        self.bus_file = boot_parameters.BusFile(self.value('bus_config'))
         self._declare_all()
 
     def _declare(self, name: str, value, description: str, **ranges) -> Parameter:
@@ -45,6 +49,8 @@ class NodeParameters:
         if isinstance(value, Parameter.Type):
             descriptor.type = value.value
         self._declared.append(name)
+        if not isinstance(value, Parameter.Type):
+            self._defaults[name] = value
         return checks.declare(self._node, name, value, descriptor)
 
     def _declare_all(self) -> None:
@@ -219,7 +225,8 @@ class NodeParameters:
             checks.simulation_warning(interface, channel, simulated + simulated_drives),
             checks.pdo_configure_warning(value('pdo.configure'), [
                 node_id for node_id in pdo_nodes
-                if not value(device_file_parameter(node_id))])) if warning]
+                if not value(device_file_parameter(node_id))]),
+            self.bus_file.warning) if warning]
         for warning in self.warnings:
             self._node.get_logger().warning(warning)
         return GatewayConfig(
@@ -248,7 +255,8 @@ class NodeParameters:
             heartbeat_node_id=own_id,
             heartbeat_period=value('heartbeat.period'),
             drives=drives,
-            raw=raw_parameters.settings(self._strings))
+            raw=raw_parameters.settings(self._strings),
+            bus_description=self.bus_file.description)
 
     def joints(self) -> Dict[int, drive_parameters.Joint]:
         """Return every drive's joint (name, scales); raise ConfigurationError when wrong."""
@@ -256,28 +264,32 @@ class NodeParameters:
 
     def _given_ids(self, name: str) -> List[int]:
         """Return the node ids given for ``name`` that can name parameters (1..127)."""
-        given = self._node.get_parameter_or(name, Parameter(name, value=[])).value or []
+        given = self.bus_file.node_ids(name, list(
+            self._node.get_parameter_or(name, Parameter(name, value=[])).value or []))
         return [node_id for node_id in given if 1 <= node_id <= 127]
 
     def _strings(self, name: str) -> List[str]:
         return list(self._node.get_parameter_or(name, Parameter(name, value=[])).value or [])
 
     def value(self, name: str):
-        """Return the value of parameter ``name``."""
-        return self._node.get_parameter(name).value
+        """Return the value of parameter ``name`` (the bus description's, when not given)."""
+        given = self._node.get_parameter(name).value
+        if name == 'bus_config':
+            return given
+        return self.bus_file.value(name, given, self._defaults.get(name))
 
     def node_ids(self, name: str) -> List[int]:
         """Return the node ids of an integer-array parameter, checked to be 1..127."""
         parameter = self._node.get_parameter_or(name, Parameter(name, value=[]))
         node_ids = list(parameter.value or [])
         checks.check_node_ids(name, node_ids)
-        return node_ids
+        return self.bus_file.node_ids(name, node_ids)
 
     def _listed_devices(self) -> List[int]:
         listed = set()
         for name in ('nodes', 'node_guarding', 'pdo.nodes', 'drives.nodes'):
-            listed.update(self._node.get_parameter_or(name, Parameter(name, value=[])).value
-                          or [])
+            listed.update(self.bus_file.node_ids(name, list(
+                self._node.get_parameter_or(name, Parameter(name, value=[])).value or [])))
         return sorted(node_id for node_id in listed if 1 <= node_id <= 127)
 
     def check_device_files(self) -> None:

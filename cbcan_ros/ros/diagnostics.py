@@ -20,6 +20,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from ..core.boot.service import BootState, FAILED, WAITING
 from ..core.bus import BusStatus
 from ..core.drives import cia402
 from ..core.drives.status import DriveStatus
@@ -204,20 +205,41 @@ class Diagnostics:
         emergencies = {status.node_id: status for status in gateway.emcy.statuses()}
         sdo = gateway.sdo_statistics()
         pdo = gateway.pdo.statistics()
+        boots = {state.node_id: state for state in gateway.boot.states()}
         statuses = [self._device_status(node_id,
                                         heartbeats.get(node_id) or gateway.monitor.status(node_id),
                                         emergencies.get(node_id) or EmcyStatus(node_id),
                                         sdo.get(node_id) or SdoStatistics(), bus_up)
                     for node_id in sorted(set(heartbeats) | set(emergencies) | set(sdo) |
-                                          set(pdo))]
+                                          set(pdo) | set(boots))]
         for status in statuses:
             node_id = int(status.name.rpartition(' ')[2])
+            if node_id in boots:
+                self._add_boot(status, boots[node_id])
             if node_id in pdo:
                 operational = gateway.monitor.status(node_id).state_name == 'OPERATIONAL'
                 self._add_pdo(status, pdo[node_id], self._previous_pdo.get(node_id), elapsed,
                               operational)
         self._previous_pdo = pdo
         return statuses
+
+    @staticmethod
+    def _add_boot(status: DiagnosticStatus, boot: BootState) -> None:
+        """Show the device's boot: a failed one is an error, one held back a warning."""
+        if boot.state == FAILED:
+            status.level = bytes([max(status.level[0], ERROR)])
+            status.message += (f'; boot failed (CiA 302-2 error {boot.error_status}): '
+                               f'{boot.message}; not started')
+        elif boot.state == WAITING and boot.message:  # held back, or its boot ended
+            status.level = bytes([max(status.level[0], WARN)])
+            status.message += f'; {boot.message}'
+        status.values += [KeyValue(key=key, value=str(value)) for key, value in {
+            'Boot state': boot.state,
+            'Boot error status': boot.error_status or 'none',
+            'Boot message': boot.message or 'none',
+            'Boots completed': boot.boots,
+            'Objects written at its last boot': boot.writes,
+        }.items()]
 
     @staticmethod
     def _add_pdo(status: DiagnosticStatus, pdo: PdoStatistics,

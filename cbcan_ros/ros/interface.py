@@ -33,6 +33,7 @@ from ..msg import LssIdentity, NodeState, NodeStates
 from ..msg import SdoResult as SdoResultMessage
 from ..plc.mailbox import Mailbox
 from ..srv import (
+    Boot,
     DriveCommand,
     LssConfigure,
     LssInquire,
@@ -46,6 +47,7 @@ from ..srv import (
     SdoWrite,
 )
 from .answer_retry import AnswerRetry
+from .boot import BootTopics, fill_boot
 from .config import NodeParameters
 from .deferred import CallsInProgress, DeferredService
 from .diagnostics import Diagnostics
@@ -184,6 +186,8 @@ class GatewayInterface:
         self._mailbox = Mailbox(self.gateway, asyncio.wrap_future)
         self._drives = DriveTopics(node, self.gateway.drives, parameters.joints(),
                                    lambda: None if self.active else INACTIVE)
+        self._boots = BootTopics(node, self.gateway.boot,
+                                 lambda: None if self.active else INACTIVE)
         # Calls must overlap: a slow device never holds up the others or the state topic.
         options = dict(qos_profile=SERVICE_QOS, callback_group=ReentrantCallbackGroup())
         self._deferred = [
@@ -198,7 +202,8 @@ class GatewayInterface:
                 (LssScan, 'lss_scan', self._start_lss_scan, _fill_lss),
                 (LssConfigure, 'lss_configure', self._start_lss_configure, _fill_lss),
                 (LssInquire, 'lss_inquire', self._start_lss_inquire, _fill_lss),
-                (DriveCommand, 'drive_command', self._drives.start_command, fill_command))]
+                (DriveCommand, 'drive_command', self._drives.start_command, fill_command),
+                (Boot, 'boot', self._boots.start_boot, fill_boot))]
         self._services = [
             node.create_service(service_type, f'~/{name}', callback, **options)
             for service_type, name, callback in (
@@ -260,6 +265,7 @@ class GatewayInterface:
         self.gateway.set_operational(True)
         self._publish_states()
         self._drives.publish_states()  # changes while inactive were not published
+        self._boots.publish()
 
     def deactivate(self) -> None:
         """Answer every new call "inactive", stop the drives and publishing.
@@ -302,6 +308,7 @@ class GatewayInterface:
         node.destroy_publisher(publisher)
         self._emcy.destroy()
         self._drives.destroy()
+        self._boots.close()
         self._pdo_topics.destroy()
         self._raw.destroy()
         self._diagnostics.destroy()

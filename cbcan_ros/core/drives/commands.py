@@ -275,6 +275,10 @@ class DriveCommands:
     # The commands.
 
     async def _enable(self, drive, mode: int) -> str:
+        unbooted = self._service.boot_refusal(drive.node_id)
+        if unbooted:
+            raise DriveFailed(f'node {drive.node_id}: {unbooted}; enable refused, nothing was '
+                              f'sent to the controlword')
         if drive.unwatched:  # written since, or a write that failed once: tried again
             await self._service.watch_again(drive)
             if drive.unwatched:

@@ -77,6 +77,8 @@ class DriveService:
                 lambda n=node_id: monitor.operational(n)), DriveStatus(node_id))
             for node_id in sorted(set(settings.node_ids))}
         self._listeners: List[Callable[[DriveStatus], None]] = []
+        # Why a drive may not be enabled though it answers (its boot failed), or None.
+        self.boot_refusal: Callable[[int], Optional[str]] = lambda node_id: None
         self._runner = CoroutineRunner('drives')
         self._commands = DriveCommands(self)
         self._closing = False
@@ -107,6 +109,16 @@ class DriveService:
         """Return what is known of drive ``node_id`` now: UNKNOWN until it is re-read."""
         with self._lock:
             return shown(self._drives[node_id])
+
+    def refuse_enable_when(self, refusal: Callable[[int], Optional[str]]) -> None:
+        """Have ``refusal(node_id)`` (why a drive may not be enabled, or None) asked first."""
+        self.boot_refusal = refusal
+
+    def enabled(self, node_id: int) -> bool:
+        """Return whether ``node_id`` is a drive shown OPERATION_ENABLED (it may move)."""
+        with self._lock:
+            drive = self._drives.get(node_id)
+            return drive is not None and shown(drive).state == cia402.OPERATION_ENABLED
 
     def statuses(self) -> List[DriveStatus]:
         """Return every drive's status, by node id."""

@@ -1,9 +1,9 @@
-"""A device's PDO parameters over SDO: its mappings read, the ones of its EDS/DCF written.
+"""A device's PDO parameters over SDO: its mappings read.
 
 The communication and mapping parameters of all its PDOs (0x1400-0x17FF, 0x1800-0x1BFF,
 from number 1 up to the first one it does not have) are read through the gateway's own SDO
 channels, so they queue behind (and never race) a user's SDO calls and pass its write
-protection. When the file's parameters are written, each PDO is disabled while it changes.
+protection. Writing them is a step of a device's boot (``core/boot/plan.py``).
 
 python-canopen's ``PdoMap`` is not used for this: it reads mappings through canopen's own SDO
 client (a second client on the device's SDO channel, racing the gateway's), needs every
@@ -18,7 +18,6 @@ from canopen.objectdictionary import ObjectDictionary
 
 from ..sdo.requests import Access
 from .mapping import (
-    COB_INVALID,
     MAX_ENTRIES,
     MAX_PDOS,
     parse_mapping,
@@ -35,7 +34,7 @@ NO_SUCH_OBJECT = 0x06020000
 
 
 class ParametersFailed(Exception):
-    """A device's PDO mapping could not be read (or its file's written)."""
+    """A device's PDO mapping could not be read."""
 
 
 class PdoParameters:
@@ -54,31 +53,6 @@ class PdoParameters:
                                 TPDO_MAPPING),
                 self._read_kind(node_id, dictionary, 'rpdo', RPDO_COMMUNICATION,
                                 RPDO_MAPPING))
-
-    def write_file(self, node_id: int, dictionary: ObjectDictionary) -> None:
-        """Write the PDO parameters of the device's file; raise :class:`ParametersFailed`."""
-        accesses = []
-        for communication, mapping_index in ((RPDO_COMMUNICATION, RPDO_MAPPING),
-                                             (TPDO_COMMUNICATION, TPDO_MAPPING)):
-            for number in range(MAX_PDOS):
-                com = dictionary.get(communication + number)
-                mapped = dictionary.get(mapping_index + number)
-                if com is None or mapped is None:
-                    continue
-                accesses += _configuration(node_id, com, mapped, communication + number,
-                                           mapping_index + number)
-        if not accesses:
-            return
-        results = self._sdo_batch(accesses).result()
-        failed = [(access, result) for access, result in zip(accesses, results, strict=True)
-                  if not result.success]
-        if failed:
-            access, result = failed[0]
-            raise ParametersFailed(f'configuring from node_{node_id}.eds: writing '
-                                   f'0x{access.index:04X}:{access.subindex} failed: '
-                                   f'{result.message}')
-        LOGGER.info('node %d: PDO parameters of its EDS written (%d objects)',
-                    node_id, len(accesses))
 
     def _read_kind(self, node_id: int, dictionary: Optional[ObjectDictionary], kind: str,
                    communication: int, mapping_index: int) -> Dict[int, PdoMapping]:
@@ -125,27 +99,3 @@ class PdoParameters:
                 raise ParametersFailed(f'0x{index:04X}:{sub}: {result.message}')
         return numbers
 
-
-def _file_value(variable) -> int:
-    value = variable.value if variable.value is not None else variable.default
-    return int(value or 0)
-
-
-def _configuration(node_id: int, com, mapped, com_index: int,
-                   map_index: int) -> List[Access]:
-    """Return the writes that put one PDO of a file onto the device (CiA 301 order)."""
-    def write(index: int, sub: int, value: int, size: int) -> Access:
-        return Access(node_id, index, sub, True, value.to_bytes(size, 'little'))
-
-    cob_entry = _file_value(com[1])
-    accesses = [write(com_index, 1, cob_entry | COB_INVALID, 4)]
-    for sub, size in ((2, 1), (3, 2), (5, 2)):
-        if sub in com.subindices:
-            accesses.append(write(com_index, sub, _file_value(com[sub]), size))
-    count = _file_value(mapped[0])
-    accesses.append(write(map_index, 0, 0, 1))
-    accesses += [write(map_index, sub, _file_value(mapped[sub]), 4)
-                 for sub in range(1, count + 1) if sub in mapped.subindices]
-    accesses.append(write(map_index, 0, count, 1))
-    accesses.append(write(com_index, 1, cob_entry, 4))
-    return accesses

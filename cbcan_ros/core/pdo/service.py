@@ -1,8 +1,8 @@
 """PDOs (CiA 301 process data) as a service: mappings kept current, frames carried.
 
 For every device served (``pdo.nodes``) the PDO parameters are read (``parameters``)
-when it is first heard and again after every boot-up message. With ``pdo.configure`` the PDO
-parameters of the device's EDS/DCF file are written first whenever it boots.
+when it is first heard and again after every boot-up message; a device the boot service
+configures (``core/boot``) is read when its boot asks (``read_again``), after its writes.
 
 The device's transmit PDOs arrive through ``network.subscribe`` with the host's monotonic
 receive time; the bus thread only checks a frame's length and hands it to the listeners as a
@@ -64,7 +64,8 @@ class _Device:
     heard: bool = False
     wanted: int = 0       # mapping reads asked for (first heard, every boot-up)
     done: int = 0         # the request the current mapping answers
-    boots: int = 0        # boot-ups asked to configure
+    booted: bool = False  # configured by the boot service: read when it asks
+    readers: List[Tuple[int, Future]] = field(default_factory=list)  # (request, its answer)
     life: int = 0         # boot-ups heard: each wipes the RPDOs' frames
     failed_at: float = 0.0
     mapping_text: str = 'not read yet'
@@ -86,18 +87,18 @@ class PdoService:
     """
 
     def __init__(self, network, node_ids: Sequence[int], sdo_batch, write_protection,
-                 sync, dictionaries: Dict[int, ObjectDictionary], configure: bool = False):
+                 sync, dictionaries: Dict[int, ObjectDictionary], booted: Sequence[int] = ()):
         self._network = network
         self._parameters = PdoParameters(sdo_batch)
         self._protection = write_protection
         self._sync = sync
-        self._configure = configure
         self._lock = threading.Condition()  # reentrant (an RLock)
         # Held from reading a frame to send until it is sent, so the last frame the device
         # gets is always the newest (a SYNC flush of a drive's run frame never follows the
         # frame of its stop). Taken before the lock, never while holding it.
         self._frames = threading.Lock()
-        self._devices = {node_id: _Device(node_id, dictionaries.get(node_id))
+        self._devices = {node_id: _Device(node_id, dictionaries.get(node_id),
+                                          booted=node_id in booted)
                          for node_id in sorted(set(node_ids))}
         self._by_cob: Dict[int, PdoMapping] = {}
         self._subscribed: set = set()
@@ -136,6 +137,8 @@ class PdoService:
         for futures in pending.values():
             for future, *_ in futures:
                 answer(future, SdoResult.failed(f'{SHUTTING_DOWN}; it was not sent'))
+        for device in self._devices.values():
+            self._answer_readers(device, device.wanted, SHUTTING_DOWN)
         for node_id in self._devices:
             self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
         # The mapping reader is not waited for: it may wait for an SDO answer, which the
@@ -168,6 +171,26 @@ class PdoService:
         with self._lock:
             device = self._devices[node_id]
             return dict(device.tpdos), dict(device.rpdos)
+
+    def read_again(self, node_id: int) -> 'Future[str]':
+        """Read the mapping of ``node_id`` again; resolves to '' once read, or why not."""
+        future: Future = Future()
+        with self._lock:
+            if self._closing:
+                return resolved(SHUTTING_DOWN)
+            device = self._devices[node_id]
+            device.wanted += 1
+            device.readers.append((device.wanted, future))
+            self._lock.notify_all()
+        return future
+
+    def _answer_readers(self, device: _Device, request: int, problem: str) -> None:
+        with self._lock:
+            answered = [future for wanted, future in device.readers if wanted <= request]
+            device.readers = [(wanted, future) for wanted, future in device.readers
+                              if wanted > request]
+        for future in answered:
+            answer(future, problem)
 
     def mapping_reads(self, node_id: int) -> int:
         """Return how many times the mapping of a device served was read (each a new one)."""
@@ -373,14 +396,13 @@ class PdoService:
             device = self._devices[can_id - HEARTBEAT_COB_BASE]
             first = not device.heard
             device.heard = True
+            if boot:
+                device.last_sent.clear()  # its RPDOs hold nothing of before
+                device.life += 1
             retry = (device.done < 0 and
                      time.monotonic() - device.failed_at >= REREAD_INTERVAL)
-            if boot or first or retry:
+            if (boot or first or retry) and not device.booted:
                 device.wanted += 1
-                if boot:
-                    device.boots = device.wanted
-                    device.last_sent.clear()  # its RPDOs hold nothing of before
-                    device.life += 1
                 self._lock.notify_all()
 
     def _read_mappings(self) -> None:
@@ -393,18 +415,11 @@ class PdoService:
                     return
                 device = next(device for device in self._devices.values()
                               if device.wanted > abs(device.done))
-                request, configure = device.wanted, device.boots == device.wanted
-            self._read_device(device, request, configure and self._configure)
+                request = device.wanted
+            self._read_device(device, request)
 
-    def _read_device(self, device: _Device, request: int, configure: bool) -> None:
+    def _read_device(self, device: _Device, request: int) -> None:
         node_id = device.node_id
-        if configure and device.dictionary is not None:
-            try:
-                self._parameters.write_file(node_id, device.dictionary)
-            except ParametersFailed as error:
-                # What the device has is still worth reading: it is what it will send.
-                self._log_once(node_id, 'configure', f'node {node_id}: PDO parameters not '
-                               f'written: {error}; the mapping the device has is used')
         try:
             tpdos, rpdos = self._parameters.read(node_id, device.dictionary)
         except ParametersFailed as error:
@@ -414,6 +429,7 @@ class PdoService:
                 device.done = -request
                 device.failed_at = time.monotonic()
                 device.mapping_text = f'read failed: {error}'
+            self._answer_readers(device, request, f'PDO mapping not read: {error}')
             self._log_once(node_id, 'mapping', f'node {node_id}: PDO mapping not read: '
                            f'{error}; tried again on a later heartbeat')
             return
@@ -436,6 +452,7 @@ class PdoService:
                 if mapping.enabled:
                     self._by_cob[mapping.cob_id] = mapping
             self._follow_cob_ids()
+        self._answer_readers(device, request, '')
         device.logged.discard('mapping')
         LOGGER.info('node %d: PDO mapping read: %s', node_id, ', '.join(
             describe(mapping) for mapping in [*tpdos.values(), *rpdos.values()]) or 'no PDOs')

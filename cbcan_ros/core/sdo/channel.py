@@ -93,12 +93,21 @@ class SdoChannel:
         """Queue one access; the future resolves to its :class:`SdoResult`."""
         return self._submit(lambda deadline: self._access(access, deadline), timeout, None)
 
-    def batch(self, accesses: Sequence[Access], timeout: float) -> 'Future[List[SdoResult]]':
-        """Queue accesses to run in order as one request; resolves to their results."""
+    def batch(self, accesses: Sequence[Access], timeout: float,
+              stop: Optional[Callable[[List[SdoResult]], Optional[str]]] = None
+              ) -> 'Future[List[SdoResult]]':
+        """Queue accesses to run in order as one request; resolves to their results.
+
+        ``stop(results so far)``, asked before each access is sent, says why the rest must
+        not be sent (a boot that ended), or None.
+        """
         def run(deadline: float) -> List[SdoResult]:
             results = []
             for access in accesses:
-                if time.monotonic() >= deadline:
+                reason = stop(results) if stop is not None else None
+                if reason:
+                    results.append(SdoResult.failed(f'{reason}; not sent'))
+                elif time.monotonic() >= deadline:
                     results.append(SdoResult.aborted(
                         abort_codes.TIMEOUT, "the batch's timeout ran out before this access; "
                                              'nothing was sent'))

@@ -12,6 +12,8 @@ Examples (the gateway started by ``make run`` is ``/can0/cbcan``)::
     cbcan_cli nmt 5 start
     cbcan_cli state 5
     cbcan_cli states
+    cbcan_cli boot 5                                      # check, configure, start node 5 again
+    cbcan_cli boot-states                                 # how each device's last boot ended
     cbcan_cli --gateway /robot/can1/cbcan mailbox cbcan 0x0001 ...
     cbcan_cli sdo-batch r:5:0x1000 w:5:0x2002:0:78563412 r:3:0x1008
     cbcan_cli sdo-batch --file accesses.txt
@@ -44,14 +46,14 @@ from typing import Optional, Sequence
 
 from ..client import DEFAULT_GATEWAY, DEFAULT_WAIT, RequestFailed
 from ..service_caller import GatewayUnavailable
-from . import drive, lss, mailbox, move, nmt, pdo, raw, sdo
+from . import boot, drive, lss, mailbox, move, nmt, pdo, raw, sdo
 from .arguments import positive_seconds
 from .errors import print_refusal, UsageError
 from .standalone_client import Client
 
 # The command groups, each a module with add_commands(commands), in the order --help lists
 # their commands.
-COMMAND_GROUPS = (sdo, nmt, mailbox, lss, pdo, drive, move, raw)
+COMMAND_GROUPS = (sdo, nmt, boot, mailbox, lss, pdo, drive, move, raw)
 
 
 def build_parser() -> argparse.ArgumentParser:

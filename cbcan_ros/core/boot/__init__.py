@@ -1,0 +1,1 @@
+"""Boot configuration: every device checked, configured, started each time it boots (CiA 302-2)."""

@@ -1,0 +1,464 @@
+"""Boot configuration as a service: every device booted at start and at each of its boot-ups.
+
+For each device of the bus description (or of ``pdo.configure``) a boot (``process.py``) runs
+at gateway start, at every boot-up message the device sends, when it is heard again after
+being lost, and on request (``boot``). Boots of different devices run in parallel, one at a
+time per device; a new boot-up ends the boot running for that device, and no write of the old
+boot goes out after it. A device is started (NMT start) only after its boot succeeded, and only
+once every ``mandatory`` device has booted; a device whose boot failed is never started.
+
+Each device's state (``WAITING``, ``BOOTING``, ``BOOTED``, ``FAILED``, ``IGNORED``) with its
+CiA 302-2 error status letter is kept for callers and listeners (the ROS layer publishes it).
+"""
+
+from concurrent.futures import Future
+from dataclasses import dataclass, replace
+import logging
+import threading
+import time
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+from .. import nmt
+from ..bus import BusStatus, prompt
+from ..sdo.request_queue import answer, resolved
+from .plan import BootSettings, DevicePlan
+from .process import BootEnded, BootFailed, BootLink, DeviceBoot
+
+LOGGER = logging.getLogger(__name__)
+
+WAITING, BOOTING, BOOTED, FAILED, IGNORED = 'WAITING', 'BOOTING', 'BOOTED', 'FAILED', 'IGNORED'
+SHUTTING_DOWN = 'the gateway is shutting down'
+DEFAULT_CALL_TIMEOUT = 30.0  # s a boot call waits for its boots when it names no timeout
+
+
+@dataclass(frozen=True)
+class BootState:
+    """One device's boot as callers see it."""
+
+    node_id: int
+    name: str
+    state: str = WAITING
+    error_status: str = ''  # CiA 302-2 letter of the last failure, '' without one
+    message: str = ''
+    writes: int = 0         # objects written in its last boot
+    boots: int = 0          # boots completed since the gateway started
+    stamp: float = 0.0      # time.time() of the last change
+
+
+@dataclass(frozen=True)
+class BootAnswer:
+    """The answer to a boot request."""
+
+    success: bool
+    message: str
+    states: Tuple[BootState, ...] = ()
+
+
+class _Device:
+    def __init__(self, plan: DevicePlan):
+        self.plan = plan
+        self.state = BootState(plan.node_id, plan.name, WAITING if plan.boot else IGNORED,
+                               message='' if plan.boot else 'boot: false in the bus '
+                               'description: left alone', stamp=time.time())
+        self.wanted = 0            # boots asked for; each ends the one running
+        self.done = 0              # the last boot that ended (with a verdict or not)
+        self.booted_itself = False  # the boot wanted was started by its own boot-up
+        self.running = False
+        self.ready = False         # booted, waiting to be started
+        self.awaiting_boot_up = False
+        self.boot_ups = 0          # boot-ups heard while awaited
+        self.heartbeats = 0
+        self.heard = False
+        self.lost = False
+        self.waiters: List[Tuple[int, Future]] = []
+
+
+class BootService:
+    """The boots of the devices of ``settings``, on the gateway's network.
+
+    ``sdo_batch(accesses, timeout, stop)`` is the gateway's (``stop()``: why the rest of a
+    batch must not be sent, or None); ``nmt_command(node_id, command)`` its NMT command;
+    ``pdo`` its PDO service (mappings read again after a boot); ``monitor`` its heartbeat
+    monitor (a device lost and heard again boots again); ``drive_enabled(node_id)`` whether
+    a drive is running (a boot call is refused then).
+    """
+
+    def __init__(self, network, settings: BootSettings, sdo_batch, nmt_command, pdo, monitor,
+                 deadlines, sdo_timeout: float,
+                 drive_enabled: Callable[[int], bool] = lambda node_id: False):
+        self._network = network
+        self._settings = settings
+        self._sdo_batch = sdo_batch
+        self._nmt_command = nmt_command
+        self._pdo = pdo
+        self._monitor = monitor
+        self._deadlines = deadlines
+        self._sdo_timeout = sdo_timeout
+        self._drive_enabled = drive_enabled
+        self._devices: Dict[int, _Device] = {plan.node_id: _Device(plan)
+                                             for plan in settings.plans}
+        self._lock = threading.Condition()
+        self._closing = False
+        self._bus_down = ''
+        self._listeners: List[Callable[[], None]] = []
+
+    @property
+    def node_ids(self) -> List[int]:
+        """Return the devices booted (IGNORED ones included)."""
+        return sorted(self._devices)
+
+    def add_listener(self, listener: Callable[[], None]) -> None:
+        """Call ``listener()`` (from a boot or bus thread, no lock held) after every change."""
+        self._listeners.append(listener)
+
+    def states(self) -> List[BootState]:
+        """Return every device's boot state, by node id."""
+        with self._lock:
+            return [self._devices[node_id].state for node_id in sorted(self._devices)]
+
+    def refusal(self, node_id: int) -> Optional[str]:
+        """Return why ``node_id`` must not be run now (its boot did not succeed), or None."""
+        device = self._devices.get(node_id)
+        if device is None or not device.plan.boot:
+            return None
+        state = device.state
+        if state.state == BOOTED:
+            return None
+        if state.state == FAILED:
+            return (f'its boot failed (CiA 302-2 error {state.error_status}: {state.message}); '
+                    f'it was not started')
+        return f'its boot has not succeeded ({state.state}: {state.message or "not yet run"})'
+
+    def start(self) -> None:
+        """Listen to the devices' heartbeats and boot every device once."""
+        for node_id in self._devices:
+            self._network.subscribe(nmt.HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
+        if self._devices:
+            self._monitor.add_listener(self._on_node_states)
+        with self._lock:
+            for device in self._devices.values():
+                if device.plan.boot:
+                    self._want(device, False)
+
+    def stop(self) -> None:
+        """End every boot: nothing more is written; callers waiting are answered."""
+        with self._lock:
+            self._closing = True
+            self._lock.notify_all()
+            waiters = [waiter for device in self._devices.values() for waiter in device.waiters]
+            for device in self._devices.values():
+                device.waiters = []
+        for node_id in self._devices:
+            self._network.unsubscribe(nmt.HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
+        for _, future in waiters:
+            answer(future, BootAnswer(False, f'{SHUTTING_DOWN}: the boot ended'))
+
+    def on_bus_change(self, status: BusStatus) -> None:
+        """End every boot while the bus is down; boot every device heard again after it."""
+        with self._lock:
+            self._bus_down = '' if status.up else f'the CAN bus is down: {status.reason}'
+            if status.up:
+                return
+            for device in self._devices.values():
+                if device.heard:
+                    device.lost = True
+            self._lock.notify_all()
+
+    def boot(self, node_id: int, timeout: float = 0.0) -> 'Future[BootAnswer]':
+        """Boot ``node_id`` again (0: every device); resolves when its boot ended.
+
+        Refused at once for a device the bus description does not name, one it leaves alone
+        (``boot: false``) and a drive that is running (disable it first). A boot still
+        running after ``timeout`` s (0: 30 s) is answered as such; it goes on.
+        """
+        if node_id and node_id not in self._devices:
+            named = ', '.join(map(str, self._devices)) or 'none'
+            return resolved(BootAnswer(False, f'node_id {node_id} is not booted by the '
+                                              f'gateway (its devices: {named})'))
+        chosen = [node_id] if node_id else [n for n, d in self._devices.items() if d.plan.boot]
+        if not chosen:
+            return resolved(BootAnswer(False, 'the gateway boots no device: give a bus '
+                                              'description (parameter bus_config)'))
+        for chosen_id in chosen:
+            device = self._devices[chosen_id]
+            if not device.plan.boot:
+                return resolved(BootAnswer(False, f'node {device.plan.label} has boot: false '
+                                                  f'in the bus description: left alone'))
+            if self._drive_enabled(chosen_id):
+                return resolved(BootAnswer(False, f'drive {device.plan.label} is '
+                                                  f'OPERATION_ENABLED: disable it first, a '
+                                                  f'boot resets and stops it'))
+        futures = []
+        with self._lock:
+            if self._closing:
+                return resolved(BootAnswer(False, f'{SHUTTING_DOWN}; nothing was sent'))
+            for chosen_id in chosen:
+                device = self._devices[chosen_id]
+                self._want(device, False)
+                future: Future = Future()
+                device.waiters.append((device.wanted, future))
+                futures.append(future)
+        return self._collect(chosen, futures, timeout or DEFAULT_CALL_TIMEOUT)
+
+    def _collect(self, node_ids: Sequence[int], futures: List[Future],
+                 timeout: float) -> 'Future[BootAnswer]':
+        done: Future = Future()
+        remaining = [len(futures)]
+        lock = threading.Lock()
+
+        def finish() -> None:
+            states = [state for state in self.states() if state.node_id in node_ids]
+            failed = [f'{s.node_id}: {s.error_status or s.state} {s.message}'.strip()
+                      for s in states if s.state != BOOTED]
+            ended = [future.result().message for future in futures
+                     if future.done() and not future.result().success]
+            if ended:
+                failed = ended
+            answer(done, BootAnswer(not failed, '; '.join(failed) or
+                                    f'{len(states)} device(s) booted', tuple(states)))
+
+        def one_done(_future) -> None:
+            with lock:
+                remaining[0] -= 1
+                last = remaining[0] == 0
+            if last:
+                self._deadlines.cancel(watch)
+                finish()
+
+        def expire() -> None:
+            states = [state for state in self.states() if state.node_id in node_ids]
+            busy = [str(s.node_id) for s in states if s.state == BOOTING]
+            answer(done, BootAnswer(False, f'still booting after {timeout:g} s: nodes '
+                                           f'{", ".join(busy) or "-"}; the boot goes on, '
+                                           f'~/boot_states shows its end', tuple(states)))
+
+        watch = self._deadlines.watch(time.monotonic() + timeout, expire)
+        for future in futures:
+            future.add_done_callback(one_done)
+        return done
+
+    def _want(self, device: _Device, booted_itself: bool) -> None:
+        """Ask for a new boot of ``device`` (lock held): it ends the one running."""
+        device.wanted += 1
+        device.booted_itself = booted_itself
+        device.ready = False
+        self._lock.notify_all()
+        if not device.running:
+            device.running = True
+            threading.Thread(target=self._run, args=(device,), daemon=True,
+                             name=f'boot-{device.plan.node_id}').start()
+
+    def _run(self, device: _Device) -> None:
+        while True:
+            with self._lock:
+                if self._closing or device.done >= device.wanted:
+                    device.running = False
+                    return
+                generation, booted_itself = device.wanted, device.booted_itself
+            self._set(device, generation, state=BOOTING, error_status='',
+                      message='booted again by its boot-up' if booted_itself else 'booting')
+            self._boot_once(device, generation, booted_itself)
+
+    def _boot_once(self, device: _Device, generation: int, booted_itself: bool) -> None:
+        plan = device.plan
+        run = DeviceBoot(plan, self._link(device, generation), self._sdo_timeout,
+                         self._settings.boot_timeout, booted_itself)
+        try:
+            outcome = run.run()
+        except BootEnded as ended:
+            with self._lock:
+                current = device.wanted == generation
+                device.done = max(device.done, generation)
+            if current:  # shutdown or the bus: no new boot follows at once
+                self._set(device, generation, state=WAITING,
+                          message=f'boot ended: {ended}; booted again when heard')
+                self._answer_waiters(device, generation)
+            return
+        except BootFailed as failure:
+            LOGGER.error('node %s: boot failed (CiA 302-2 error %s): %s; not started',
+                         plan.label, failure.letter, failure.message)
+            self._set(device, generation, done=True, state=FAILED,
+                      error_status=failure.letter, message=failure.message)
+            if plan.pdos:  # served as the device has them: it is not started by the gateway
+                self._pdo.read_again(plan.node_id)
+            self._start_ready()
+            return
+        except Exception as error:  # noqa: BLE001 - a defect must not leave BOOTING for ever
+            LOGGER.exception('node %s: boot failed', plan.label)
+            self._set(device, generation, done=True, state=FAILED, error_status='J',
+                      message=f'the boot stopped on an error of the gateway: {error!r}')
+            return
+        with self._lock:
+            if device.wanted == generation:
+                device.ready = True
+        self._set(device, generation, writes=outcome.writes, message=outcome.message)
+        self._start_ready()
+
+    def _start_ready(self) -> None:
+        """Start every device booted and waiting, once every mandatory device has booted."""
+        with self._lock:
+            holding = [device for device in self._devices.values()
+                       if device.plan.mandatory and device.state.state != BOOTED
+                       and not device.ready]
+            ready = [device for device in self._devices.values() if device.ready]
+            for device in ready:
+                device.ready = False
+        for device in ready:
+            generation = device.wanted
+            others = [d for d in holding if d is not device]
+            if others:
+                self._hold(device, generation, others)
+                continue
+            self._start(device, generation)
+
+    def _hold(self, device: _Device, generation: int, mandatory: List[_Device]) -> None:
+        failed = [d for d in mandatory if d.state.state == FAILED]
+        if failed:
+            why = '; '.join(f'{d.plan.label} failed its boot ({d.state.error_status}: '
+                            f'{d.state.message})' for d in failed)
+            text = f'configured and verified, not started: mandatory device {why}'
+        else:
+            text = ('configured and verified, waiting for mandatory device(s) '
+                    + ', '.join(d.plan.label for d in mandatory))
+        with self._lock:
+            if device.wanted == generation:
+                device.ready = True
+        self._set(device, generation, done=True, state=WAITING, message=text)
+
+    def _start(self, device: _Device, generation: int) -> None:
+        plan = device.plan
+        message = device.state.message
+        if not (plan.start and self._settings.start_nodes):
+            why = 'start: false' if not plan.start else 'master start_nodes: false'
+            self._set(device, generation, done=True, state=BOOTED,
+                      message=f'{message}; not started ({why})'.lstrip('; '))
+            return
+        with self._lock:
+            problem = self._ended(device, generation)
+        if not problem:
+            result = self._nmt_command(plan.node_id, nmt.START)
+            problem = '' if result.success else f'NMT start not sent: {result.message}'
+        if problem:
+            self._set(device, generation, done=True, state=WAITING,
+                      message=f'configured, not started: {problem}')
+            return
+        LOGGER.info('node %s booted: %s; started', plan.label, message or 'nothing written')
+        self._set(device, generation, done=True, state=BOOTED,
+                  message=f'{message}; started'.lstrip('; '))
+
+    def _set(self, device: _Device, generation: int, done: bool = False, **changes) -> None:
+        """Change the device's state, unless a newer boot was asked for meanwhile."""
+        with self._lock:
+            if device.wanted != generation:
+                return
+            boots = device.state.boots + (1 if done and changes.get('state') in (
+                BOOTED, FAILED) else 0)
+            if done:
+                device.done = max(device.done, generation)
+            device.state = replace(device.state, boots=boots, stamp=time.time(), **changes)
+        if done:
+            self._answer_waiters(device, generation)
+        for listener in self._listeners:
+            listener()
+
+    def _answer_waiters(self, device: _Device, generation: int) -> None:
+        with self._lock:
+            answered = [future for wanted, future in device.waiters if wanted <= generation]
+            device.waiters = [(wanted, future) for wanted, future in device.waiters
+                              if wanted > generation]
+        for future in answered:
+            answer(future, BootAnswer(True, ''))
+
+    def _ended(self, device: _Device, generation: int) -> str:
+        """Return why the boot ``generation`` of ``device`` must end (lock held), or ''."""
+        if self._closing:
+            return SHUTTING_DOWN
+        if self._bus_down:
+            return self._bus_down
+        if device.wanted != generation:
+            return 'the device booted again (or a new boot was asked for)'
+        return ''
+
+    def _link(self, device: _Device, generation: int) -> BootLink:
+        node_id = device.plan.node_id
+
+        def ended() -> str:
+            with self._lock:
+                return self._ended(device, generation)
+
+        def sdo(accesses, timeout):
+            def stop(results) -> Optional[str]:
+                failed = next((r for r in results if not r.success), None)
+                if failed is not None:
+                    return 'an earlier access of the boot failed'
+                return ended() or None
+            return self._sdo_batch(accesses, timeout, stop).result()
+
+        def nmt_send(command: int) -> str:
+            result = self._nmt_command(node_id, command)
+            return '' if result.success else result.message
+
+        def await_boot_up(send: Callable[[], str], timeout: float) -> bool:
+            with self._lock:
+                device.awaiting_boot_up = True
+                seen = device.boot_ups
+            try:
+                if send():
+                    return False
+                deadline = time.monotonic() + timeout
+                with self._lock:
+                    while device.boot_ups == seen and not self._ended(device, generation):
+                        left = deadline - time.monotonic()
+                        if left <= 0:
+                            return False
+                        self._lock.wait(left)
+                    return device.boot_ups != seen
+            finally:
+                with self._lock:
+                    device.awaiting_boot_up = False
+
+        def await_heartbeat(timeout: float) -> bool:
+            deadline = time.monotonic() + timeout
+            with self._lock:
+                seen = device.heartbeats
+                while device.heartbeats == seen and not self._ended(device, generation):
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        return False
+                    self._lock.wait(left)
+                return device.heartbeats != seen
+
+        def read_pdos() -> str:
+            return self._pdo.read_again(node_id).result()
+
+        return BootLink(sdo, nmt_send, ended, await_boot_up, await_heartbeat, read_pdos)
+
+    @prompt
+    def _on_heartbeat(self, can_id: int, data: bytearray, _timestamp: float) -> None:
+        if not data:
+            return
+        with self._lock:
+            device = self._devices[can_id - nmt.HEARTBEAT_COB_BASE]
+            if not device.plan.boot or self._closing:
+                return
+            again = device.lost
+            device.heard, device.lost = True, False
+            if data[0] == nmt.BOOT_UP:
+                if device.awaiting_boot_up:
+                    device.boot_ups += 1
+                    self._lock.notify_all()
+                else:
+                    self._want(device, True)
+                return
+            device.heartbeats += 1
+            self._lock.notify_all()
+            if again:
+                self._want(device, False)
+
+    def _on_node_states(self) -> None:
+        lost = [node_id for node_id, device in self._devices.items()
+                if device.heard and not self._monitor.status(node_id).detected]
+        if lost:
+            with self._lock:
+                for node_id in lost:
+                    self._devices[node_id].lost = True
