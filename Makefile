@@ -101,6 +101,7 @@ bench: build
 	$(ROS_ENV) python $(ROOT)/bench/bench_lss.py $(filter --quick,$(ARGS))
 	$(ROS_ENV) python $(ROOT)/bench/bench_pdo.py $(ARGS)
 	$(ROS_ENV) python $(ROOT)/bench/bench_drives.py $(filter --quick,$(ARGS))
+	$(ROS_ENV) python $(ROOT)/bench/bench_control_rate.py $(filter --quick,$(ARGS))
 	$(ROS_ENV) python $(ROOT)/bench/bench_raw.py $(filter --quick,$(ARGS))
 	$(ROS_ENV) python $(ROOT)/bench/bench_shutdown.py $(filter --quick,$(ARGS))
 
