@@ -6,6 +6,9 @@ up and then answers commands (one JSON object a line) on standard input until ``
 * ``drives``: simulated CiA 402 drives (``DurandDrive``, the PDOs of
   ``default_drive_pdos(--transmission-type)``) on one udp_multicast bus, for the gateway or
   for python canopen's ``BaseNode402``;
+* ``devices``: simulated devices (``SimulatedDevice``, every object of ``--eds``) on one
+  udp_multicast bus, for ``bench_boot.py``; an NMT reset node sets every value back to the
+  file's default. ``{"op": "stats"}`` answers how many SDO writes each device took so far;
 * ``reader``: a bare python-can receiver that takes every frame of the bus and counts it by
   kind, nothing else: the floor of receiving what the gateway receives.
   ``{"op": "stats"}`` answers the counts so far;
@@ -187,6 +190,47 @@ def run_drives(args, bus_options: Dict) -> None:
             shared.close()
 
 
+def run_devices(args, bus_options: Dict) -> None:
+    """Host ``SimulatedDevice`` s of ``--eds`` at ``--nodes`` (``--shared-socket``: on one).
+
+    Each counts the SDO writes it takes (``stats``), so a boot that wrote less than it
+    should shows in the report.
+    """
+    device_module, = import_retrying('cbcan_ros.simulation.canopen_device')
+    shared = None
+    if args.shared_socket:
+        can.interfaces.BACKENDS[SHARED_INTERFACE] = (__name__, 'SharedUdpBus')
+        shared = SHARED_SOCKETS[args.channel] = SharedSocket(args.channel, bus_options,
+                                                             args.nodes)
+    devices = []
+    writes = dict.fromkeys(args.nodes, 0)
+    for node_id in args.nodes:
+        if shared is not None:
+            device = device_module.SimulatedDevice(
+                node_id, args.eds, interface=SHARED_INTERFACE, channel=args.channel,
+                bus_options={'node_id': node_id, 'ignore_config': True})
+        else:
+            device = device_module.SimulatedDevice(node_id, args.eds, interface='udp_multicast',
+                                                   channel=args.channel,
+                                                   bus_options=bus_options)
+
+        def count(node_id=node_id, **_access) -> None:
+            writes[node_id] += 1
+
+        device.node.add_write_callback(count)
+        devices.append(device)
+    for device in devices:
+        device.start()
+    try:
+        _serve(lambda: {'writes': dict(writes),
+                        'states': {device.node_id: device.state for device in devices}})
+    finally:
+        for device in devices:
+            device.stop()
+        if shared is not None:
+            shared.close()
+
+
 def run_reader(args, bus_options: Dict) -> None:
     """Receive and count every frame, by kind: the floor of receiving them.
 
@@ -272,7 +316,8 @@ def run_relay(args, bus_options: Dict) -> None:
         bus.shutdown()
 
 
-MODES = {'drives': run_drives, 'reader': run_reader, 'relay': run_relay}
+MODES = {'drives': run_drives, 'devices': run_devices, 'reader': run_reader,
+         'relay': run_relay}
 
 
 def main(argv=None) -> int:
@@ -282,14 +327,15 @@ def main(argv=None) -> int:
     parser.add_argument('--channel', required=True, help='udp_multicast group')
     parser.add_argument('--bus-options', default='{}', help='JSON, e.g. {"port": 30001}')
     parser.add_argument('--nodes', type=lambda text: [int(n) for n in text.split(',')],
-                        default=[1], help='node ids of the drives (drives mode), e.g. 1,2,3')
+                        default=[1], help='node ids of the drives or devices, e.g. 1,2,3')
     parser.add_argument('--transmission-type', type=int, default=0,
                         help="0: the drives' default PDOs (asynchronous); 1: every SYNC")
     parser.add_argument('--layout', default='combined',
                         help="the drives' PDO layout (simulated_drives.LAYOUTS), without "
                              '--transmission-type')
     parser.add_argument('--shared-socket', action='store_true',
-                        help='drives mode: one udp_multicast socket for all the drives')
+                        help='drives and devices modes: one udp_multicast socket for all')
+    parser.add_argument('--eds', help='devices mode: the EDS the simulated devices serve')
     parser.add_argument('--record', type=lambda text: {int(i, 0) for i in text.split(',')},
                         default=set(), help='reader mode: COB-IDs whose frames are kept, '
                                             'e.g. 0x181,0x201')
