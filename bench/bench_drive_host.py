@@ -19,13 +19,15 @@ up and then answers commands (one JSON object a line) on standard input until ``
 """
 
 import argparse
+import heapq
+import itertools
 import json
 import queue
 import struct
 import sys
 import threading
 import time
-from typing import Dict
+from typing import Dict, List
 
 from bench_util import exit_on_sigterm, import_retrying, progress, receive, send
 import can
@@ -190,6 +192,45 @@ def run_drives(args, bus_options: Dict) -> None:
             shared.close()
 
 
+class LateAnswers:
+    """Sends each device's SDO answers ``delay`` s after they are ready, devices apart.
+
+    A real device takes about a millisecond to answer an SDO request; the simulated ones
+    answer at once, on the CPU the master needs too. One thread sends every answer at its
+    time, so one device's wait never holds up another's.
+    """
+
+    def __init__(self, delay: float):
+        self._delay = delay
+        self._due: List = []
+        self._order = itertools.count()
+        self._changed = threading.Condition()
+        threading.Thread(target=self._run, daemon=True, name='late answers').start()
+
+    def wrap(self, send):
+        """Return ``send`` (one answer frame) delayed."""
+        def later(response) -> None:
+            with self._changed:
+                heapq.heappush(self._due, (time.monotonic() + self._delay, next(self._order),
+                                           send, bytes(response)))
+                self._changed.notify()
+        return later
+
+    def _run(self) -> None:
+        with self._changed:
+            while True:
+                now = time.monotonic()
+                if self._due and self._due[0][0] <= now:
+                    _, _, send, response = heapq.heappop(self._due)
+                    self._changed.release()
+                    try:
+                        send(response)
+                    finally:
+                        self._changed.acquire()
+                    continue
+                self._changed.wait(self._due[0][0] - now if self._due else None)
+
+
 def run_devices(args, bus_options: Dict) -> None:
     """Host ``SimulatedDevice`` s of ``--eds`` at ``--nodes`` (``--shared-socket``: on one).
 
@@ -204,6 +245,7 @@ def run_devices(args, bus_options: Dict) -> None:
                                                              args.nodes)
     devices = []
     writes = dict.fromkeys(args.nodes, 0)
+    late = LateAnswers(args.answer_delay) if args.answer_delay else None
     for node_id in args.nodes:
         if shared is not None:
             device = device_module.SimulatedDevice(
@@ -218,6 +260,8 @@ def run_devices(args, bus_options: Dict) -> None:
             writes[node_id] += 1
 
         device.node.add_write_callback(count)
+        if late is not None:
+            device.node.sdo.send_response = late.wrap(device.node.sdo.send_response)
         devices.append(device)
     for device in devices:
         device.start()
@@ -336,6 +380,9 @@ def main(argv=None) -> int:
     parser.add_argument('--shared-socket', action='store_true',
                         help='drives and devices modes: one udp_multicast socket for all')
     parser.add_argument('--eds', help='devices mode: the EDS the simulated devices serve')
+    parser.add_argument('--answer-delay', type=float, default=0.0,
+                        help='devices mode: seconds each SDO answer takes, as on a real '
+                             'device (0: at once)')
     parser.add_argument('--record', type=lambda text: {int(i, 0) for i in text.split(',')},
                         default=set(), help='reader mode: COB-IDs whose frames are kept, '
                                             'e.g. 0x181,0x201')

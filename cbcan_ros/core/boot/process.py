@@ -65,7 +65,8 @@ class BootLink:
     - ``ended()``: why the boot must end, or ''.
     - ``await_boot_up(send, timeout)``: calls ``send()`` (a reset), then returns whether the
       device's boot-up came within ``timeout`` s (a boot-up it asked for: the boot goes on).
-    - ``await_heartbeat(timeout)``: whether a heartbeat came within ``timeout`` s from now.
+    - ``await_heartbeat(timeout)``: whether a heartbeat of this boot came (since it began, or
+      since the boot-up of a reset it sent), waiting up to ``timeout`` s from now.
     - ``read_pdos()``: reads the device's PDO mapping again; returns why it failed, or ''.
     """
 

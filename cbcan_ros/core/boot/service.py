@@ -381,6 +381,11 @@ class BootService:
 
     def _link(self, device: _Device, generation: int) -> BootLink:
         node_id = device.plan.node_id
+        # Heartbeats of this boot: those heard since it began, or since the boot-up of a
+        # reset it sent. Error control is started when the boot starts listening, as a
+        # consumer does, not after the writes: one heard meanwhile counts.
+        with self._lock:
+            heard_before = [device.heartbeats]
 
         def ended() -> str:
             with self._lock:
@@ -412,6 +417,7 @@ class BootService:
                         if left <= 0:
                             return False
                         self._lock.wait(left)
+                    heard_before[0] = device.heartbeats
                     return device.boot_ups != seen
             finally:
                 with self._lock:
@@ -420,13 +426,13 @@ class BootService:
         def await_heartbeat(timeout: float) -> bool:
             deadline = time.monotonic() + timeout
             with self._lock:
-                seen = device.heartbeats
-                while device.heartbeats == seen and not self._ended(device, generation):
+                while (device.heartbeats == heard_before[0]
+                       and not self._ended(device, generation)):
                     left = deadline - time.monotonic()
                     if left <= 0:
                         return False
                     self._lock.wait(left)
-                return device.heartbeats != seen
+                return device.heartbeats != heard_before[0]
 
         def read_pdos() -> str:
             return self._pdo.read_again(node_id).result()
