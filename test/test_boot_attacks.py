@@ -14,6 +14,8 @@ import pytest
 from test_boot_configuration import (  # noqa: F401 - rig is a fixture
     bus_file,
     CONFIGURED,
+    downloads,
+    EDS,
     NODE,
     rig,
     starts,
@@ -324,3 +326,26 @@ def test_the_bus_going_down_while_the_pdo_mapping_is_read_ends_the_boot_without_
     finally:
         service.stop()
         deadlines.stop()
+
+
+def test_a_dcf_mapping_without_its_cob_id_is_written_with_the_pdo_disabled(rig, tmp_path):  # noqa: F811, E501
+    """CiA 301 order: a DCF giving RPDO 1's mapping (ParameterValue) but not its COB-ID.
+
+    The mapping must still be written with the PDO disabled (bit 31 of its COB-ID first,
+    valid again after); a real device refuses a mapping changed while its PDO is valid.
+    """
+    text = CONFIGURED.replace('dcf: device.eds', 'dcf: mapped.dcf')
+    # The first mapping record of the file is RPDO 1's (0x1600).
+    (tmp_path / 'mapped.dcf').write_text(EDS.read_text().replace(
+        'DataType=0x0005\nAccessType=rw\nDefaultValue=2\nPDOMapping=0\n',
+        'DataType=0x0005\nAccessType=rw\nDefaultValue=2\nPDOMapping=0\nParameterValue=1\n',
+        1))
+    gateway, devices, frames = rig(text)
+    wait_for_boot(gateway, 'BOOTED')
+    written = [obj for _, obj in downloads(frames.snapshot())]
+    mapping = [position for position, obj in enumerate(written) if obj[0] == 0x1600]
+    disabled = [position for position, obj in enumerate(written) if obj == (0x1400, 1)]
+    assert mapping, written
+    assert disabled and disabled[0] < mapping[0] < mapping[-1] < disabled[-1], (
+        f'RPDO 1 mapping written while the PDO is valid: '
+        f'{[f"0x{index:04X}:{sub}" for index, sub in written]}')
