@@ -349,3 +349,22 @@ def test_a_dcf_mapping_without_its_cob_id_is_written_with_the_pdo_disabled(rig, 
     assert disabled and disabled[0] < mapping[0] < mapping[-1] < disabled[-1], (
         f'RPDO 1 mapping written while the PDO is valid: '
         f'{[f"0x{index:04X}:{sub}" for index, sub in written]}')
+
+
+@pytest.mark.parametrize('endless', [float('inf'), float('nan'), -1.0])
+def test_a_boot_call_with_an_endless_timeout_is_refused_and_others_keep_their_deadlines(  # noqa: E501
+        rig, endless):  # noqa: F811
+    """Promise 5: ``~/boot`` with timeout inf, NaN or below 0 is refused at once.
+
+    Its deadline went into the gateway's one deadline thread unchecked: inf raised
+    OverflowError there (the thread ended), NaN stayed at the top of its heap for good (no
+    later deadline fired, the thread spun); either way no later call was timed out again.
+    """
+    text = CONFIGURED.replace('boot_timeout: 1000', 'boot_timeout: 20000') + (
+        '  absent:\n    node_id: 11\n    dcf: device.eds\n')
+    gateway, devices, frames = rig(text)
+    wait_for_boot(gateway, 'BOOTED')
+    refused = gateway.call('boot', node_id=NODE, timeout=endless)
+    assert not refused.success and 'timeout' in refused.message, refused.message
+    answer = gateway.call('boot', node_id=11, timeout=0.5, wait=10.0)
+    assert not answer.success and 'still booting' in answer.message, answer.message

@@ -14,6 +14,7 @@ CiA 302-2 error status letter is kept for callers and listeners (the ROS layer p
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
 import logging
+import math
 import threading
 import time
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
@@ -178,6 +179,10 @@ class BootService:
         (``boot: false``) and a drive that is running (disable it first). A boot still
         running after ``timeout`` s (0: 30 s) is answered as such; it goes on.
         """
+        if not (math.isfinite(timeout) and timeout >= 0):
+            # An endless deadline would stop the gateway's one deadline thread for every call.
+            return resolved(BootAnswer(False, f'timeout {timeout}: allowed 0 (30 s) or a '
+                                              f'positive number of seconds'))
         if node_id and node_id not in self._devices:
             named = ', '.join(map(str, self._devices)) or 'none'
             return resolved(BootAnswer(False, f'node_id {node_id} is not booted by the '
