@@ -265,6 +265,11 @@ def file_pdos(dictionary: ObjectDictionary, defaults: bool) -> Dict[Tuple[str, i
                 pdo.mapping = [number_of(_variable(dictionary, map_index, sub)) or 0
                                for sub in range(1, count + 1)
                                if _variable(dictionary, map_index, sub) is not None]
+            if pdo.mapping is not None and pdo.cob_entry is None:
+                # CiA 301: a mapping is changed only while the PDO is disabled, and that
+                # takes its COB-ID: the file's default when it gives no value of its own.
+                default = _file_value(_variable(dictionary, com_index, 1), True)
+                pdo.cob_entry = None if default is None else int(default)
             found[kind, number] = pdo
     return found
 

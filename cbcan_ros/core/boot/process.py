@@ -148,6 +148,7 @@ class DeviceBoot:
             self._check_ended()
             problem = self._link.read_pdos()
             if problem:
+                self._check_ended()  # a read the bus or a boot-up ended says nothing of it
                 raise BootFailed('J', f'its PDO mapping could not be read after the '
                                       f'configuration: {problem}')
         if plan.heartbeat_check:

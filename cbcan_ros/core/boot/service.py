@@ -14,6 +14,7 @@ CiA 302-2 error status letter is kept for callers and listeners (the ROS layer p
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
 import logging
+import math
 import threading
 import time
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
@@ -70,6 +71,7 @@ class _Device:
         self.heartbeats = 0
         self.heard = False
         self.lost = False
+        self.interrupted = False   # its boot was ended by the bus going down
         self.waiters: List[Tuple[int, Future]] = []
 
 
@@ -158,6 +160,12 @@ class BootService:
         with self._lock:
             self._bus_down = '' if status.up else f'the CAN bus is down: {status.reason}'
             if status.up:
+                # A boot the bus ended is run again now: a device that sends no heartbeat
+                # would never be heard again to be booted. Heard, it boots once, not twice.
+                for device in self._devices.values():
+                    if device.interrupted:
+                        device.interrupted = device.lost = False
+                        self._want(device, False)
                 return
             for device in self._devices.values():
                 if device.heard:
@@ -171,6 +179,10 @@ class BootService:
         (``boot: false``) and a drive that is running (disable it first). A boot still
         running after ``timeout`` s (0: 30 s) is answered as such; it goes on.
         """
+        if not (math.isfinite(timeout) and timeout >= 0):
+            # An endless deadline would stop the gateway's one deadline thread for every call.
+            return resolved(BootAnswer(False, f'timeout {timeout}: allowed 0 (30 s) or a '
+                                              f'positive number of seconds'))
         if node_id and node_id not in self._devices:
             named = ', '.join(map(str, self._devices)) or 'none'
             return resolved(BootAnswer(False, f'node_id {node_id} is not booted by the '
@@ -269,9 +281,14 @@ class BootService:
             with self._lock:
                 current = device.wanted == generation
                 device.done = max(device.done, generation)
+                if current and not self._closing:  # the bus: booted again when it is back
+                    if self._bus_down:
+                        device.interrupted = True
+                    else:  # back already
+                        self._want(device, False)
             if current:  # shutdown or the bus: no new boot follows at once
                 self._set(device, generation, state=WAITING,
-                          message=f'boot ended: {ended}; booted again when heard')
+                          message=f'boot ended: {ended}; booted again when the bus is back')
                 self._answer_waiters(device, generation)
             return
         except BootFailed as failure:
@@ -291,20 +308,27 @@ class BootService:
         with self._lock:
             if device.wanted == generation:
                 device.ready = True
+                # Done: its start may be sent by another device's thread (_start_ready),
+                # and this thread must not take the boot for one still to run.
+                device.done = generation
         self._set(device, generation, writes=outcome.writes, message=outcome.message)
         self._start_ready()
 
     def _start_ready(self) -> None:
         """Start every device booted and waiting, once every mandatory device has booted."""
         with self._lock:
+            # A mandatory device left alone (boot: false) is not booted, so not waited for
+            # (as Lely's master counts a slave it does not boot as booted).
             holding = [device for device in self._devices.values()
-                       if device.plan.mandatory and device.state.state != BOOTED
-                       and not device.ready]
-            ready = [device for device in self._devices.values() if device.ready]
-            for device in ready:
+                       if device.plan.mandatory and device.plan.boot
+                       and device.state.state != BOOTED and not device.ready]
+            # The generation of each boot taken, with the lock: a boot-up after this moment
+            # begins a newer boot, which this start must not be taken for.
+            ready = [(device, device.wanted) for device in self._devices.values()
+                     if device.ready]
+            for device, _ in ready:
                 device.ready = False
-        for device in ready:
-            generation = device.wanted
+        for device, generation in ready:
             others = [d for d in holding if d is not device]
             if others:
                 self._hold(device, generation, others)
