@@ -29,6 +29,7 @@ from cbcan_ros.core.boot.plan import BootSettings, DevicePlan
 from cbcan_ros.core.boot.service import BootService
 from cbcan_ros.core.bus import BusStatus
 from cbcan_ros.core.gateway import NmtResult
+from cbcan_ros.core.nmt import NodeStatus
 from cbcan_ros.core.sdo.request_queue import Deadlines
 from cbcan_ros.core.sdo.requests import SdoResult
 from cbcan_ros.simulation.durand.device import DurandDevice
@@ -368,3 +369,44 @@ def test_a_boot_call_with_an_endless_timeout_is_refused_and_others_keep_their_de
     assert not refused.success and 'timeout' in refused.message, refused.message
     answer = gateway.call('boot', node_id=11, timeout=0.5, wait=10.0)
     assert not answer.success and 'still booting' in answer.message, answer.message
+
+
+class SilentMonitor:
+    """A heartbeat monitor that finds every device silent when its listener is called."""
+
+    def __init__(self):
+        self.listeners = []
+
+    def add_listener(self, listener):
+        """Keep the listener, called by the test."""
+        self.listeners.append(listener)
+
+    def status(self, node_id):
+        """Every device is not detected."""
+        return NodeStatus(node_id, nmt.NOT_DETECTED, None, -1.0, detected=False)
+
+
+def test_a_device_silent_during_its_own_boot_is_not_booted_again_by_its_first_heartbeat():
+    # A device whose factory 0x1017 is 0 sends nothing between its boot-up and the write of
+    # its heartbeat time: a boot longer than heartbeat.timeout made the monitor lose it, and
+    # its first heartbeat then started the boot again, which reset it to silence again.
+    devices, network, monitor = FakeDevices(), FakeNetwork(), SilentMonitor()
+    gate = devices.gates[2] = threading.Event()
+    service = BootService(network, BootSettings(plans=(plain_plan(2),), boot_timeout=1.0),
+                          devices.sdo_batch, devices.nmt_command, FakePdo(), monitor,
+                          Deadlines(), 0.5)
+    service.start()
+    try:
+        network.boot_up(2)  # heard: its boot runs, waiting at the gate
+        for listener in monitor.listeners:
+            listener()  # silent for heartbeat.timeout while its boot runs
+        gate.set()
+        wait_until(lambda: state(service, 2).state == 'BOOTED', WAIT, 'node 2 booted')
+        asked = service._devices[2].wanted
+        network.handlers[nmt.HEARTBEAT_COB_BASE + 2](
+            nmt.HEARTBEAT_COB_BASE + 2, bytearray([nmt.OPERATIONAL]), time.monotonic())
+        # The heartbeat handler asks for a boot there and then, or never.
+        assert service._devices[2].wanted == asked, 'its first heartbeat booted it again'
+        assert state(service, 2).boots == 1, state(service, 2)
+    finally:
+        service.stop()

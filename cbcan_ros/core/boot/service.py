@@ -491,4 +491,9 @@ class BootService:
         if lost:
             with self._lock:
                 for node_id in lost:
-                    self._devices[node_id].lost = True
+                    device = self._devices[node_id]
+                    # Silent during its own boot is no loss: a device whose factory 0x1017
+                    # is 0 sends nothing until the boot writes it, and its first heartbeat
+                    # would start the boot again (and the reset silence it again).
+                    if not device.running:
+                        device.lost = True
