@@ -135,3 +135,15 @@ def test_a_drive_whose_boot_failed_cannot_be_enabled(make_gateway, tmp_path):
         assert drive.drive_state != 'OPERATION_ENABLED' and drive.state == 127
     finally:
         drive.stop()
+
+
+def test_make_runs_bus_description_boots_its_simulated_devices(make_gateway):
+    gateway = make_gateway(simulation__drives=[6], drives__consumer_time=3.0,
+                           bus_config=str(ROOT / 'config' / 'simulation_bus.yml'))
+    states = booted(gateway, (2, 3, 5, 6))
+    assert [states[n].name for n in (2, 3, 5, 6)] == ['conveyor_io', 'gripper_io', 'lamp_io',
+                                                      'wheel']
+    assert 'not started (start: false)' in states[5].message
+    assert gateway.device(2).node.get_data(0x2021, 0) == b'conveyor'
+    wait_until(lambda: gateway.device(2).state == 5 and gateway.device(5).state == 127, WAIT,
+               'node 2 started, node 5 left pre-operational')
