@@ -360,3 +360,20 @@ def test_a_cancelled_move_halts_the_drive_where_it_is(rig, layout):
     assert 'halted at position' in result.result.message, result.result.message
     assert axis.drive.velocity == 0 and axis.drive.statusword & 0x100
     assert axis.drive.position < 100_000
+
+
+def test_a_stream_of_targets_that_are_not_sent_is_logged_once(rig, caplog):
+    # A controller streams targets; the drive (run by SDO) stops answering SDO, so each
+    # target times out. One line says so, not one a target (a 250 Hz stream would log 250
+    # lines a second); the next target sent ends the incident.
+    axis = rig(pdos=layout_pdos('sdo_only'))
+    axis.enable(CSV)
+    gateway = axis.gateway.node.gateway
+    timeouts = gateway.sdo_statistics()[NODE].timeouts
+    axis.drive._network.allowed = lambda cob_id: cob_id != 0x580 + NODE  # no SDO answers
+    for value in range(1, 11):
+        axis.target.publish(Float64(data=value / 10))
+    wait_until(lambda: gateway.sdo_statistics()[NODE].timeouts >= timeouts + 5, WAIT,
+               'five targets timed out')
+    lines = [r.message for r in caplog.records if 'a target was not sent' in r.message]
+    assert len(lines) == 1, lines

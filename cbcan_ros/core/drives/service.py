@@ -82,6 +82,9 @@ class DriveService:
         self._runner = CoroutineRunner('drives')
         self._commands = DriveCommands(self)
         self._closing = False
+        # Drives whose last target was not sent: the first failure of a run is logged, the
+        # rest of it not (a stream at 250 Hz would log every one), until one is sent again.
+        self._targets_failing: set = set()
         self._checks = checks.RequestChecks(self._drives, self._lock, write_protection,
                                             bus_down, lambda: self._closing)
         self._cycle = FeedbackCycle(settings.feedback_period, self._tick)
@@ -536,6 +539,12 @@ class DriveService:
         return done
 
     def _log_failed_target(self, node_id: int, done: Future) -> None:
-        if not done.result().success:
-            LOGGER.warning('drive %d: a target was not sent: %s', node_id, done.result().message)
+        failed = not done.result().success
+        with self._lock:
+            first = failed and node_id not in self._targets_failing
+            (self._targets_failing.add if failed else self._targets_failing.discard)(node_id)
+        if first:
+            LOGGER.warning('drive %d: a target was not sent: %s; the targets after it that are '
+                           'not sent either are not logged, until one is', node_id,
+                           done.result().message)
 
