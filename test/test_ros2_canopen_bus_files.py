@@ -73,68 +73,73 @@ def test_a_proxy_bus_file_boots_and_starts_every_device(make_gateway, tmp_path, 
             device.stop()
 
 
-def test_ros2_canopens_cia402_example_configures_a_drive_that_then_moves(make_gateway,
-                                                                        tmp_path):
-    channel = new_channel()
-    drive = DurandDrive(2, channel=channel)
-    drive.start()
-    try:
+@pytest.fixture
+def cia402_example(make_gateway, tmp_path):
+    """Return ``start(**drive_options)``: a drive at node 2, the gateway on cia402.yml.
+
+    ros2_canopen's CiA 402 example file, with our drive EDS under the name it gives.
+    """
+    drives = []
+
+    def start(**drive_options):
+        channel = new_channel()
+        drive = DurandDrive(2, channel=channel, **drive_options)
+        drive.start()
+        drives.append(drive)
         gateway = make_gateway(can__channel=channel, simulation__devices=None,
                                drives__consumer_time=3.0, drives__command_timeout=0.0,
                                bus_config=copied(tmp_path, 'cia402.yml',
                                                  {'cia402_slave.eds': DRIVE_EDS}))
-        booted(gateway, (2,))
-        assert drive.value(0x60C2, 1) == bytes([50])
-        assert drive.value(0x6081) == struct.pack('<I', 1000)
-        assert drive.value(0x1601, 0) == b'\x02'  # RPDO 2: target position, velocity
-        assert drive.value(0x1601, 1) == struct.pack('<I', 0x607A0020)
-        wait_until(lambda: drive.state == 5, WAIT, 'the drive OPERATIONAL')
-        assert gateway.node.gateway.sync.status().period == pytest.approx(0.01)
-        # The file's drive: joint name its node's, ros2_canopen's scale of 1000 per rad.
-        assert gateway.call('drive_command', node_id=2, command='enable', mode=PP).success
-        start = drive.position
-        mover = ActionClient(gateway.client_node, DriveMove, '/cbcan/move')
-        assert mover.wait_for_server(timeout_sec=10.0)
-        goal = wait_for_future(mover.send_goal_async(DriveMove.Goal(
-            node_id=2, position=start / 1000 + 0.5, velocity=1.0)), WAIT)
-        result = wait_for_future(goal.get_result_async(), WAIT)
-        assert result.status == GoalStatus.STATUS_SUCCEEDED, result.result.message
-        assert drive.position == start + 500
-        mover.destroy()
-    finally:
+        return gateway, drive
+
+    yield start
+    for drive in drives:
         drive.stop()
 
 
-def test_a_drive_whose_boot_failed_cannot_be_enabled(make_gateway, tmp_path):
-    channel = new_channel()
-    drive = DurandDrive(2, channel=channel, identity=(0, 0x51, 0x10000, 0))  # not a 0x402
-    drive.start()
+def test_ros2_canopens_cia402_example_configures_a_drive_that_then_moves(cia402_example):
+    gateway, drive = cia402_example()
+    booted(gateway, (2,))
+    assert drive.value(0x60C2, 1) == bytes([50])
+    assert drive.value(0x6081) == struct.pack('<I', 1000)
+    assert drive.value(0x1601, 0) == b'\x02'  # RPDO 2: target position, velocity
+    assert drive.value(0x1601, 1) == struct.pack('<I', 0x607A0020)
+    wait_until(lambda: drive.state == 5, WAIT, 'the drive OPERATIONAL')
+    assert gateway.node.gateway.sync.status().period == pytest.approx(0.01)
+    # The file's drive: joint name its node's, ros2_canopen's scale of 1000 per rad.
+    assert gateway.call('drive_command', node_id=2, command='enable', mode=PP).success
+    start = drive.position
+    mover = ActionClient(gateway.client_node, DriveMove, '/cbcan/move')
+    assert mover.wait_for_server(timeout_sec=10.0)
+    goal = wait_for_future(mover.send_goal_async(DriveMove.Goal(
+        node_id=2, position=start / 1000 + 0.5, velocity=1.0)), WAIT)
+    result = wait_for_future(goal.get_result_async(), WAIT)
+    assert result.status == GoalStatus.STATUS_SUCCEEDED, result.result.message
+    assert drive.position == start + 500
+    mover.destroy()
+
+
+def test_a_drive_whose_boot_failed_cannot_be_enabled(cia402_example):
+    gateway, drive = cia402_example(identity=(0, 0x51, 0x10000, 0))  # not a 0x402
+    wait_until(lambda: gateway.node.gateway.boot.states()[0].state == 'FAILED', WAIT,
+               'the boot failed')
+    wait_until(lambda: gateway.node.gateway.drives.status(2).state != 'UNKNOWN', WAIT,
+               'the drive read, though not started')
+    bus = gateway.raw_bus()
     try:
-        gateway = make_gateway(can__channel=channel, simulation__devices=None,
-                               drives__consumer_time=3.0, drives__command_timeout=0.0,
-                               bus_config=copied(tmp_path, 'cia402.yml',
-                                                 {'cia402_slave.eds': DRIVE_EDS}))
-        wait_until(lambda: gateway.node.gateway.boot.states()[0].state == 'FAILED', WAIT,
-                   'the boot failed')
-        wait_until(lambda: gateway.node.gateway.drives.status(2).state != 'UNKNOWN', WAIT,
-                   'the drive read, though not started')
-        bus = gateway.raw_bus()
-        try:
-            answer = gateway.call('drive_command', node_id=2, command='enable', mode=PP)
-            assert not answer.success, answer.message
-            assert 'boot failed (CiA 302-2 error M' in answer.message, answer.message
-            sent, until = [], time.monotonic() + 0.5  # what the refusal may have sent
-            while time.monotonic() < until:
-                message = bus.recv(0.05)
-                if message is not None:
-                    sent.append(message)
-        finally:
-            bus.shutdown()
-        assert not [m for m in sent if m.arbitration_id == 0x602 and m.data[1:3] == b'\x40\x60'
-                    and m.data[0] >> 5 == 1], 'a controlword was written'
-        assert drive.drive_state != 'OPERATION_ENABLED' and drive.state == 127
+        answer = gateway.call('drive_command', node_id=2, command='enable', mode=PP)
+        assert not answer.success, answer.message
+        assert 'boot failed (CiA 302-2 error M' in answer.message, answer.message
+        sent, until = [], time.monotonic() + 0.5  # what the refusal may have sent
+        while time.monotonic() < until:
+            message = bus.recv(0.05)
+            if message is not None:
+                sent.append(message)
     finally:
-        drive.stop()
+        bus.shutdown()
+    assert not [m for m in sent if m.arbitration_id == 0x602 and m.data[1:3] == b'\x40\x60'
+                and m.data[0] >> 5 == 1], 'a controlword was written'
+    assert drive.drive_state != 'OPERATION_ENABLED' and drive.state == 127
 
 
 def test_make_runs_bus_description_boots_its_simulated_devices(make_gateway):

@@ -20,7 +20,7 @@ in time, :class:`GatewayUnavailable`. A value that does not fit its type raises 
 """
 
 from dataclasses import dataclass
-from typing import NamedTuple, Optional, Sequence, Union
+from typing import Dict, List, NamedTuple, Optional, Sequence, Union
 
 from rclpy.node import Node
 
@@ -158,8 +158,7 @@ class GatewayClient(ServiceCaller):
 
     def __init__(self, node: Node, gateway: str = DEFAULT_GATEWAY, wait: float = DEFAULT_WAIT):
         super().__init__(node, gateway, wait)
-        self._latest_states = None
-        self._latest_boots = None
+        self._latest: Dict[str, List] = {}  # topic: the messages kept (the newest last)
 
     def subscribe_states(self, callback):
         """Call ``callback(NodeStates)`` on ``node``'s executor for every state change.
@@ -256,21 +255,27 @@ class GatewayClient(ServiceCaller):
     state = blocking(_state)
     state_async = awaitable(_state)
 
+    def _newest(self, message_type, topic: str, qos, what: str):
+        """Return the newest message of a latched topic of the gateway, subscribed once."""
+        with self._lock:
+            kept = self._latest.get(topic)
+            subscribed = kept is not None
+            if not subscribed:
+                kept = self._latest[topic] = []
+        if not subscribed:
+            self._own.create_subscription(message_type, f'{self.gateway}/{topic}', kept.append,
+                                          qos)
+        if not (yield self._when(lambda: kept, self.wait)):
+            raise GatewayUnavailable(f'no {what} from {self.gateway} within {self.wait:g} s: '
+                                     f'is cbcan_node running?')
+        newest = kept[-1]
+        del kept[:-1]
+        return newest
+
     def _node_states(self):
         """Return the latest ``node_states`` message (every known node, its state)."""
-        with self._lock:
-            subscribed = self._latest_states is not None
-            if not subscribed:
-                self._latest_states = []
-        if not subscribed:
-            self._own.create_subscription(NodeStates, f'{self.gateway}/node_states',
-                                          self._latest_states.append, NODE_STATES_QOS)
-        if not (yield self._when(lambda: self._latest_states, self.wait)):
-            raise GatewayUnavailable(f'no node states from {self.gateway} within '
-                                     f'{self.wait:g} s: is cbcan_node running?')
-        latest = self._latest_states[-1]
-        del self._latest_states[:-1]
-        return latest
+        return (yield from self._newest(NodeStates, 'node_states', NODE_STATES_QOS,
+                                        'node states'))
 
     node_states = blocking(_node_states)
     node_states_async = awaitable(_node_states)
@@ -303,19 +308,8 @@ class GatewayClient(ServiceCaller):
 
     def _boot_states(self):
         """Return the latest ``boot_states`` message (every booted device, its boot)."""
-        with self._lock:
-            subscribed = self._latest_boots is not None
-            if not subscribed:
-                self._latest_boots = []
-        if not subscribed:
-            self._own.create_subscription(BootStates, f'{self.gateway}/boot_states',
-                                          self._latest_boots.append, BOOT_STATES_QOS)
-        if not (yield self._when(lambda: self._latest_boots, self.wait)):
-            raise GatewayUnavailable(f'no boot states from {self.gateway} within '
-                                     f'{self.wait:g} s: is cbcan_node running?')
-        latest = self._latest_boots[-1]
-        del self._latest_boots[:-1]
-        return latest
+        return (yield from self._newest(BootStates, 'boot_states', BOOT_STATES_QOS,
+                                        'boot states'))
 
     boot_states = blocking(_boot_states)
     boot_states_async = awaitable(_boot_states)

@@ -40,6 +40,18 @@ def seconds(text: str) -> float:
     return value
 
 
+def bounded_seconds(highest: float, zero_means: str):
+    """Return a parser of a timeout from 0 (``zero_means``, in words) to ``highest`` s."""
+    def parse(text: str) -> float:
+        value = seconds(text)
+        if not 0.0 <= value <= highest:
+            raise argparse.ArgumentTypeError(
+                f'timeout {quoted(text)} is out of range: allowed 0 ({zero_means}) to '
+                f'{highest:g} s')
+        return value
+    return parse
+
+
 def positive_seconds(text: str) -> float:
     """Parse a number of seconds more than 0."""
     value = seconds(text)

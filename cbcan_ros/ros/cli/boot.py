@@ -1,14 +1,12 @@
 """The boot commands of ``cbcan_cli``: boot (run a device's boot again) and boot-states."""
 
-import argparse
 import sys
 
 from ...core.boot.service import DEFAULT_CALL_TIMEOUT
 from ...core.protocol import MAX_NODE_ID
 from ...core.sdo.requests import MAX_TIMEOUT
-from ...core.text import quoted
 from ..client import RequestFailed
-from .arguments import ranged, seconds
+from .arguments import bounded_seconds, ranged
 from .standalone_client import Client
 
 
@@ -44,13 +42,7 @@ def cmd_boot_states(client: Client, args) -> int:
     return 0
 
 
-def _boot_seconds(text: str) -> float:
-    value = seconds(text)
-    if not 0.0 <= value <= MAX_TIMEOUT:
-        raise argparse.ArgumentTypeError(
-            f'timeout {quoted(text)} is out of range: allowed 0 (the default, '
-            f'{DEFAULT_CALL_TIMEOUT:g} s) to {MAX_TIMEOUT:g} s')
-    return value
+_boot_seconds = bounded_seconds(MAX_TIMEOUT, f'the default, {DEFAULT_CALL_TIMEOUT:g} s')
 
 
 def add_commands(commands) -> None:

@@ -5,11 +5,10 @@ import sys
 
 from ...core.lss import requests as lss
 from ...core.protocol import MAX_NODE_ID
-from ...core.text import quoted
 from ...msg import LssIdentity
 from ...srv import LssConfigure, LssInquire, LssScan
 from ..service_caller import ANSWER_MARGIN
-from .arguments import ranged, seconds
+from .arguments import bounded_seconds, ranged
 from .standalone_client import Client
 
 
@@ -67,13 +66,7 @@ def cmd_lss_inquire(client: Client, args) -> int:
     return 0
 
 
-def _lss_seconds(text: str) -> float:
-    value = seconds(text)
-    if not 0.0 <= value <= lss.MAX_TIMEOUT:
-        raise argparse.ArgumentTypeError(
-            f'timeout {quoted(text)} is out of range: allowed 0 (the default) to '
-            f'{lss.MAX_TIMEOUT:g} s')
-    return value
+_lss_seconds = bounded_seconds(lss.MAX_TIMEOUT, 'the default')
 
 
 def _lss_arguments(command: argparse.ArgumentParser, identity: bool, default: str) -> None:

@@ -15,7 +15,7 @@ from ...core.values import (
     VALUE_TYPES,
 )
 from ...msg import SdoAccess
-from .arguments import node_id, ranged, seconds
+from .arguments import bounded_seconds, node_id, ranged
 from .errors import UsageError
 from .object_names import resolve_object, Target
 from .standalone_client import Client
@@ -24,14 +24,8 @@ from .standalone_client import Client
 SHOWN_BYTES = 16
 
 
-def _sdo_timeout(text: str) -> float:
-    """Parse an SDO timeout in seconds: 0 (the gateway's sdo.timeout) up to MAX_TIMEOUT."""
-    value = seconds(text)
-    if not 0.0 <= value <= MAX_TIMEOUT:
-        raise argparse.ArgumentTypeError(
-            f"timeout {quoted(text)} is out of range: allowed 0 (the gateway's sdo.timeout) "
-            f'to {MAX_TIMEOUT:g} s')
-    return value
+# An SDO timeout in seconds: 0 (the gateway's sdo.timeout) up to MAX_TIMEOUT.
+_sdo_timeout = bounded_seconds(MAX_TIMEOUT, "the gateway's sdo.timeout")
 
 
 def _type_name(text: str) -> str:
