@@ -410,3 +410,42 @@ def test_a_device_silent_during_its_own_boot_is_not_booted_again_by_its_first_he
         assert state(service, 2).boots == 1, state(service, 2)
     finally:
         service.stop()
+
+
+class DriveWithoutVelocityTarget(FakeDevices):
+    """A position-only drive: 0x60FF does not exist; every other access succeeds."""
+
+    def __init__(self):
+        super().__init__()
+        self.written = []
+
+    def sdo_batch(self, accesses, timeout, stop):
+        """Answer as the gateway's channel does: nothing sent once ``stop`` says so."""
+        results = []
+        for access in accesses:
+            if stop(results):
+                results.append(SdoResult(False, message='not sent'))
+            elif access.index == 0x60FF:
+                results.append(SdoResult.aborted(0x06020000))
+            else:
+                if access.write:
+                    self.written.append(access.index)
+                results.append(SdoResult.ok(b'\x92\x01\x02\x00'))
+        future = Future()
+        future.set_result(results)
+        return future
+
+
+def test_a_drive_without_one_of_the_targets_gets_the_others_set_safe_and_boots():
+    devices, network = DriveWithoutVelocityTarget(), FakeNetwork()
+    plan = replace(plain_plan(2), drive=True)
+    service, deadlines = boot_service([plan], devices, network)
+    service.start()
+    try:
+        wait_until(lambda: state(service, 2).state in ('BOOTED', 'FAILED'), WAIT,
+                   'the boot ended')
+        assert state(service, 2).state == 'BOOTED', state(service, 2)
+        assert devices.written == [0x607A, 0x6071]  # target position = actual, torque 0
+    finally:
+        service.stop()
+        deadlines.stop()

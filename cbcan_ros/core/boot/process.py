@@ -13,6 +13,7 @@ import time
 from typing import Callable, Dict, List, Sequence, Tuple
 
 from .. import nmt
+from ..drives import cia402
 from ..sdo import abort_codes
 from ..sdo.requests import Access, MAX_TIMEOUT, SdoResult
 from .plan import (
@@ -30,8 +31,7 @@ from .plan import (
     Write,
 )
 
-NO_SUCH_OBJECT = (0x06020000, 0x06090011)  # object / sub-index does not exist
-WRITE_ONLY = 0x06010001
+NO_SUCH_OBJECT = (abort_codes.OBJECT_DOES_NOT_EXIST, abort_codes.SUBINDEX_NOT_EXIST)
 # The COB-ID entries of the PDOs: bit 30 (no RTR) is the device's to set, whatever was written.
 COB_ID_ENTRIES = (range(0x1400, 0x1600), range(0x1800, 0x1A00))
 COB_NO_RTR = 1 << 30
@@ -39,8 +39,6 @@ HEARTBEAT_SLACK = 0.1  # s on top, for the host's scheduling
 # The most accesses in one SDO batch of a boot; each batch queues once behind users' calls.
 BATCH = 64
 RETRY_PAUSE = 0.05  # s before 0x1000 is asked again after a refusal that took no time
-
-TARGET_POSITION, POSITION_ACTUAL, TARGET_VELOCITY, TARGET_TORQUE = 0x607A, 0x6064, 0x60FF, 0x6071
 
 
 class BootFailed(Exception):
@@ -266,7 +264,7 @@ class DeviceBoot:
         for (index, subindex), result in zip(objects, results, strict=True):
             written = checked[index, subindex]
             if not result.success:
-                if result.abort_code == WRITE_ONLY:
+                if result.abort_code == abort_codes.WRITE_ONLY:
                     continue
                 raise BootFailed('J', f'0x{index:04X}:{subindex} could not be read back '
                                       f'after writing {_hex(written)}: {result.message}')
@@ -292,15 +290,21 @@ class DeviceBoot:
                                   f'{period * 1000:g} ms (0x1017)')
 
     def _safe_targets(self) -> None:
-        """Targets that hold the drive where it is, so its start moves nothing."""
+        """Targets that hold the drive where it is, so its start moves nothing.
+
+        One transfer each: a drive without one of them (a position-only drive has no 0x60FF)
+        still gets the others, where one batch would stop at the first that fails.
+        """
         node_id = self.plan.node_id
-        read = self._read(POSITION_ACTUAL, 0)
-        targets = [(TARGET_VELOCITY, struct.pack('<i', 0)), (TARGET_TORQUE, struct.pack('<h', 0))]
+        read = self._read(cia402.POSITION_ACTUAL, 0)
+        targets = [(cia402.TARGET_VELOCITY, struct.pack('<i', 0)),
+                   (cia402.TARGET_TORQUE, struct.pack('<h', 0))]
         if read.success:
-            targets.insert(0, (TARGET_POSITION, bytes(read.data[:4]).ljust(4, b'\0')))
-        results = self._sdo([Access(node_id, index, 0, True, data) for index, data in targets])
-        for (index, data), result in zip(targets, results, strict=True):
-            if not result.success and result.abort_code not in NO_SUCH_OBJECT:
+            targets.insert(0, (cia402.TARGET_POSITION, bytes(read.data[:4]).ljust(4, b'\0')))
+        for index, data in targets:
+            result = self._sdo([Access(node_id, index, 0, True, data)])[0]
+            if result.success:
+                self._writes += 1
+            elif result.abort_code not in NO_SUCH_OBJECT:
                 raise BootFailed('J', f'its safe target 0x{index:04X} = {_hex(data)} could '
                                       f'not be written before its start: {result.message}')
-        self._writes += sum(result.success for result in results)
