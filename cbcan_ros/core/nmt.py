@@ -45,6 +45,14 @@ COMMAND_NAMES = {
 }
 
 
+def consumer_entry(producer_id: int, milliseconds: int) -> int:
+    """Return a heartbeat consumer entry (0x1016:n, CiA 301): whose heartbeat, for how long.
+
+    ``milliseconds`` above the entry's 16 bits is the longest it holds, 65535.
+    """
+    return producer_id << 16 | min(milliseconds, 0xFFFF)
+
+
 def state_name(state: int) -> str:
     """Return the name of an NMT state byte, or 'UNKNOWN_<n>' for one CiA 301 does not define."""
     return STATE_NAMES.get(state, f'UNKNOWN_{state}')

@@ -15,14 +15,16 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from canopen.objectdictionary import datatypes, ObjectDictionary, ODArray, ODRecord, ODVariable
 
+from ..nmt import consumer_entry
 from ..pdo.mapping import (
     COB_INVALID,
+    MAX_PDOS,
     RPDO_COMMUNICATION,
     RPDO_MAPPING,
     TPDO_COMMUNICATION,
     TPDO_MAPPING,
 )
-from ..values import parse_integer
+from ..values import data_type_name, parse_integer
 
 DEVICE_TYPE = 0x1000
 IDENTITY = 0x1018
@@ -141,14 +143,14 @@ def typed_value(variable: ODVariable, value, folder: str, where: str) -> bytes:
                 value = int(value)
             if isinstance(value, bool) or not isinstance(value, int):
                 raise PlanError(f'{where}: {value!r} is no integer, as '
-                                f'{datatypes_name(kind)} needs')
+                                f'{data_type_name(kind)} needs')
             return variable.encode_raw(value)
         if kind in _FLOAT_TYPES:
             number = float(value)
             return struct.pack('<f' if kind == datatypes.REAL32 else '<d', number)
         if kind in _STRING_TYPES:
             if not isinstance(value, str):
-                raise PlanError(f'{where}: {value!r} is no text, as {datatypes_name(kind)} '
+                raise PlanError(f'{where}: {value!r} is no text, as {data_type_name(kind)} '
                                 f'needs (quote it)')
             return variable.encode_raw(value)
         if kind in _BYTE_TYPES:
@@ -156,16 +158,9 @@ def typed_value(variable: ODVariable, value, folder: str, where: str) -> bytes:
     except (ValueError, struct.error, OverflowError, UnicodeError) as error:
         if isinstance(error, PlanError):
             raise
-        raise PlanError(f'{where}: {value!r} does not fit {datatypes_name(kind)} '
+        raise PlanError(f'{where}: {value!r} does not fit {data_type_name(kind)} '
                         f'({error})') from None
-    raise PlanError(f'{where}: its data type {datatypes_name(kind)} cannot be written')
-
-
-def datatypes_name(kind: Optional[int]) -> str:
-    """Return the CiA 301 name of a data type code, e.g. UNSIGNED16."""
-    names = {code: name for name, code in vars(datatypes).items()
-             if isinstance(code, int) and name.isupper() and not name.endswith('TYPES')}
-    return names.get(kind, f'type 0x{kind or 0:04X}')
+    raise PlanError(f'{where}: its data type {data_type_name(kind)} cannot be written')
 
 
 def _bytes_of(value, folder: str, where: str) -> bytes:
@@ -243,7 +238,7 @@ def file_pdos(dictionary: ObjectDictionary, defaults: bool) -> Dict[Tuple[str, i
     """
     found = {}
     for kind in ('rpdo', 'tpdo'):
-        for number in range(1, 513):
+        for number in range(1, MAX_PDOS + 1):
             com_index, map_index = _indices(kind, number)
             com, mapped = dictionary.get(com_index), dictionary.get(map_index)
             if com is None or mapped is None:
@@ -366,7 +361,7 @@ def heartbeat_writes(producer_ms: Optional[int], consumer: bool, master_id: int,
         if not master_id:
             raise PlanError(f'{where}.heartbeat_consumer: the gateway has no heartbeat to '
                             f'watch: give master.node_id or the parameter heartbeat.node_id')
-        entry = master_id << 16 | min(consumer_ms, 0xFFFF)
+        entry = consumer_entry(master_id, consumer_ms)
         writes.append(Write(CONSUMER_HEARTBEAT, 1, entry.to_bytes(4, 'little'),
                             'heartbeat_consumer'))
     return writes

@@ -317,8 +317,8 @@ class BootService:
     def _start_ready(self) -> None:
         """Start every device booted and waiting, once every mandatory device has booted."""
         with self._lock:
-            # A mandatory device left alone (boot: false) is not booted, so not waited for
-            # (as Lely's master counts a slave it does not boot as booted).
+            # A mandatory device left alone (boot: false) is not booted, so not waited for:
+            # nothing the gateway does could end that wait.
             holding = [device for device in self._devices.values()
                        if device.plan.mandatory and device.plan.boot
                        and device.state.state != BOOTED and not device.ready]

@@ -19,6 +19,7 @@ import struct
 import time
 from typing import Callable, Iterable
 
+from ..nmt import consumer_entry
 from ..sdo.requests import Access
 from . import cia402
 from .status import DriveRecord, DriveSettings
@@ -194,7 +195,7 @@ async def watch_the_gateway(sdo_batch, drive: DriveRecord, lock, settings: Drive
     node_id = drive.node_id
     if settings.abort_connection is None:
         return
-    entry = (settings.heartbeat_node_id << 16) | round(settings.consumer_time * 1000)
+    entry = consumer_entry(settings.heartbeat_node_id, round(settings.consumer_time * 1000))
     written = await asyncio.wrap_future(sdo_batch(
         [Access(node_id, cia402.CONSUMER_HEARTBEAT, 1, True, struct.pack('<I', entry))],
         CONSUMER_TIMEOUT))
