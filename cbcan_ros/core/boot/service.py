@@ -291,19 +291,20 @@ class BootService:
                           message=f'boot ended: {ended}; booted again when the bus is back')
                 self._answer_waiters(device, generation)
             return
-        except BootFailed as failure:
+        except Exception as error:  # noqa: BLE001 - a defect must not leave BOOTING for ever
+            if isinstance(error, BootFailed):
+                failure = error
+            else:
+                LOGGER.exception('node %s: the boot stopped on an error', plan.label)
+                failure = BootFailed('J', f'the boot stopped on an error of the gateway: '
+                                          f'{error!r}')
             LOGGER.error('node %s: boot failed (CiA 302-2 error %s): %s; not started',
                          plan.label, failure.letter, failure.message)
             self._set(device, generation, done=True, state=FAILED,
                       error_status=failure.letter, message=failure.message)
             if plan.pdos:  # served as the device has them: it is not started by the gateway
                 self._pdo.read_again(plan.node_id)
-            self._start_ready()
-            return
-        except Exception as error:  # noqa: BLE001 - a defect must not leave BOOTING for ever
-            LOGGER.exception('node %s: boot failed', plan.label)
-            self._set(device, generation, done=True, state=FAILED, error_status='J',
-                      message=f'the boot stopped on an error of the gateway: {error!r}')
+            self._start_ready()  # the devices a failed mandatory one holds say so
             return
         with self._lock:
             if device.wanted == generation:
