@@ -54,6 +54,7 @@ from .diagnostics import Diagnostics
 from .drives import DriveTopics, fill_command
 from .emcy import EmcyPublisher
 from .pdo import check_request, entry_values, PdoTopics
+from .publish_on_change import PublishOnChange
 from .raw_frames import RawFrameTopics
 from .rclpy_gaps import drain
 
@@ -218,17 +219,11 @@ class GatewayInterface:
 
         self._states_publisher = node.create_publisher(NodeStates, '~/node_states',
                                                        NODE_STATES_QOS)
-        # Changes are published by a thread of their own (rclpy's EventsExecutor takes no
-        # guard conditions): not by the bus thread, which a storm of changes (all nodes
-        # started at once) would hold up a publication each. One publication covers every
-        # change before it, and the lock keeps the timer's from overtaking a newer picture.
+        # Changes are published by a thread of their own, not the bus thread; the lock
+        # keeps the timer's publication from overtaking a newer picture.
         self._states_lock = threading.Lock()
-        self._states_changed = threading.Event()
-        self._states_closing = False
-        self._states_thread = threading.Thread(target=self._publish_changes,
-                                               name='node states', daemon=True)
-        self._states_thread.start()
-        self.gateway.monitor.add_listener(self._states_changed.set)
+        self._states_changed = PublishOnChange(self._publish_states, 'node states')
+        self.gateway.monitor.add_listener(self._states_changed.changed)
         self._pdo_topics = PdoTopics(node, self.gateway.pdo, self._on_tpdo_message,
                                      lambda: self.active)
         self._diagnostics = Diagnostics(node, self.gateway, parameters.joints())
@@ -298,9 +293,7 @@ class GatewayInterface:
         node = self._node
         for service in [deferred.service for deferred in self._deferred] + self._services:
             node.destroy_service(service)
-        self._states_closing = True
-        self._states_changed.set()
-        self._states_thread.join()
+        self._states_changed.close()
         for timer in self._timers:
             node.destroy_timer(timer)
         with self._states_lock:
@@ -463,14 +456,6 @@ class GatewayInterface:
         response.state_name = status.state_name
         response.last_seen_age = status.last_seen_age
         return response
-
-    def _publish_changes(self) -> None:
-        while True:
-            self._states_changed.wait()
-            if self._states_closing:
-                return
-            self._states_changed.clear()
-            self._publish_states()
 
     def _publish_emcy(self, emergency) -> None:
         if self.active:
