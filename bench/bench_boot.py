@@ -37,7 +37,6 @@ devices' time, as on a real bus.
 import argparse
 import configparser
 import os
-import random
 import re
 import statistics
 import sys
@@ -63,6 +62,7 @@ from bench_util import (
     proc_cpu_seconds,
     proc_udp_drops,
     progress,
+    ros_of_its_own,
     write_report,
 )
 
@@ -496,9 +496,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     args.repetitions = 4 if args.quick else 12
     logs_to(os.path.join(args.output, 'boot_logs.txt'))
-    os.environ['ROS_DOMAIN_ID'] = os.environ.get('BENCH_ROS_DOMAIN_ID',
-                                                 str(random.randint(101, 200)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    ros_of_its_own()
     import rclpy
     machine = machine_info()
     started = time.monotonic()

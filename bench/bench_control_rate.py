@@ -29,7 +29,6 @@ Measured over one window:
 import argparse
 import json
 import os
-import random
 import shutil
 import struct
 import subprocess
@@ -50,7 +49,7 @@ from bench_drives import (
 )
 from bench_report import machine_info
 from bench_sdo import Child, ChildFailed
-from bench_util import logs_to, OUTPUT, percentile, proc_cpu_seconds, progress
+from bench_util import logs_to, OUTPUT, percentile, proc_cpu_seconds, progress, ros_of_its_own
 
 START_TIMEOUT = 60.0
 CSP = 8
@@ -318,9 +317,7 @@ def main(argv=None) -> int:
     args.seconds = 10.0 if args.quick else 60.0
     os.makedirs(args.output, exist_ok=True)
     logs_to(os.path.join(args.output, 'control_rate_logs.txt'))
-    os.environ['ROS_DOMAIN_ID'] = os.environ.get('BENCH_ROS_DOMAIN_ID',
-                                                 str(random.randint(101, 200)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    ros_of_its_own()
     import rclpy
     machine = machine_info()
     rclpy.init()

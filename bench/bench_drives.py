@@ -47,7 +47,7 @@ import uuid
 
 from bench_report import machine_info
 from bench_sdo import Child, ChildFailed, python
-from bench_util import logs_to, OUTPUT, percentile, proc_cpu_seconds, progress
+from bench_util import logs_to, OUTPUT, percentile, proc_cpu_seconds, progress, ros_of_its_own
 
 START_TIMEOUT = 60.0
 CALL_TIMEOUT = 10.0
@@ -725,9 +725,7 @@ def main(argv=None) -> int:
     args.samples = 100 if args.quick else 300
     args.seconds = 3.0 if args.quick else 8.0
     logs_to(os.path.join(args.output, 'drives_logs.txt'))
-    os.environ['ROS_DOMAIN_ID'] = os.environ.get('BENCH_ROS_DOMAIN_ID',
-                                                 str(random.randint(101, 200)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    ros_of_its_own()
     import rclpy
     machine = machine_info()
     started = time.monotonic()

@@ -38,6 +38,7 @@ from bench_util import (
     percentile,
     proc_cpu_seconds,
     progress,
+    ros_of_its_own,
     write_report,
 )
 
@@ -310,9 +311,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     logs_to(os.path.join(args.output, 'pdo_logs.txt'))
     seconds = 2.0 if args.quick else 5.0
-    os.environ['ROS_DOMAIN_ID'] = os.environ.get('BENCH_ROS_DOMAIN_ID',
-                                                 str(random.randint(101, 200)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    ros_of_its_own()
     import rclpy
 
     from cbcan_ros.simulation.durand.pdos import PdoConfig

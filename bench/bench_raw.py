@@ -41,6 +41,7 @@ from bench_util import (
     proc_cpu_seconds,
     progress,
     receive,
+    ros_of_its_own,
     send,
     write_report,
 )
@@ -449,9 +450,7 @@ def main(argv=None) -> int:
         return run_bare_bridge(group, int(port), namespace)
     logs_to(os.path.join(args.output, 'raw_logs.txt'))
     seconds = 2.0 if args.quick else 5.0
-    os.environ['ROS_DOMAIN_ID'] = os.environ.get('BENCH_ROS_DOMAIN_ID',
-                                                 str(random.randint(101, 200)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    ros_of_its_own()
     import rclpy
     rclpy.init()
     rows: Dict[str, Dict] = {}

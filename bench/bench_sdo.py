@@ -44,6 +44,7 @@ from bench_util import (
     proc_rss_mb,
     proc_udp_drops,
     progress,
+    ros_of_its_own,
     udp_receive_drops,
 )
 
@@ -351,9 +352,7 @@ def main(argv=None) -> int:
     signal.signal(signal.SIGTERM, on_term)
     # Ctrl-C stops the run even when started where SIGINT was ignored (a background job).
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    os.environ['ROS_DOMAIN_ID'] = os.environ.get('BENCH_ROS_DOMAIN_ID',
-                                                 str(random.randint(101, 200)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    ros_of_its_own()
     machine = machine_info()
     started = time.monotonic()
     run = Run(args)

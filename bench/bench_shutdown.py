@@ -24,7 +24,7 @@ import threading
 import time
 import uuid
 
-from bench_util import logs_to, OUTPUT, progress
+from bench_util import logs_to, OUTPUT, progress, ros_of_its_own
 
 CALLS = 3000
 SILENT = range(10, 30)   # node ids nobody answers
@@ -117,9 +117,7 @@ def main(argv=None) -> int:
                              '(default %(default)s)')
     args = parser.parse_args(argv)
     logs_to(os.path.join(args.output, 'shutdown_logs.txt'))
-    os.environ['ROS_DOMAIN_ID'] = os.environ.get('BENCH_ROS_DOMAIN_ID',
-                                                 str(random.randint(101, 200)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    ros_of_its_own()
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     rclpy.init()

@@ -7,6 +7,7 @@ standard output (results and requests); everything else it prints goes to standa
 import importlib
 import json
 import os
+import random
 import signal
 import sys
 import time
@@ -43,6 +44,17 @@ NMT_ENTER_PRE_OPERATIONAL = 128
 
 
 _terminal = None  # standard error as it was before logs_to()
+
+
+def ros_of_its_own() -> None:
+    """Put this process (and the processes it starts) in a ROS domain of its own, this host only.
+
+    ``BENCH_ROS_DOMAIN_ID`` names the domain; without it one of 101..200 at random, so two runs
+    on one machine, and other ROS work on it, do not hear each other.
+    """
+    os.environ['ROS_DOMAIN_ID'] = os.environ.get('BENCH_ROS_DOMAIN_ID',
+                                                 str(random.randint(101, 200)))
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 
 def progress(text: str) -> None:
