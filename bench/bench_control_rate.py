@@ -207,6 +207,8 @@ def row(args, caller: Caller, hertz: str) -> Dict:
         gateway_ready(caller, node, DRIVES, mode=CSP)
         controller = Controller(caller, node.name)
         wait_until(lambda: controller.base is not None, START_TIMEOUT, 'joint_states')
+        helpers['drives'].tell({'op': 'generate'})
+        helpers['drives'].expect('ok', START_TIMEOUT)
         controller.running = True
         _until_no_sdo(helpers['reader'])
         _stats(helpers['reader'])  # forget what was recorded before the window

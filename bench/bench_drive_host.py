@@ -5,7 +5,9 @@ up and then answers commands (one JSON object a line) on standard input until ``
 
 * ``drives``: simulated CiA 402 drives (``DurandDrive``, the PDOs of
   ``default_drive_pdos(--transmission-type)``) on one udp_multicast bus, for the gateway or
-  for python canopen's ``BaseNode402``;
+  for python canopen's ``BaseNode402``. With ``--shared-socket``, ``{"op": "generate"}``
+  hands their synchronous TPDOs to a raw frame generator from then on (see
+  :class:`SharedSocket`);
 * ``devices``: simulated devices (``SimulatedDevice``, every object of ``--eds``) on one
   udp_multicast bus, for ``bench_boot.py``; an NMT reset node sets every value back to the
   file's default. ``{"op": "stats"}`` answers how many SDO writes each device took so far;
@@ -58,13 +60,17 @@ def _bus(args, bus_options: Dict):
     return can.Bus(interface='udp_multicast', channel=args.channel, **bus_options)
 
 
-def _serve(extra=None) -> None:
-    """Answer commands until ``stop``: ``stats`` with ``extra()``, anything else with ok."""
+def _serve(extra=None, ops=None) -> None:
+    """Answer commands until ``stop``: ``stats`` with ``extra()``, anything else with ok.
+
+    ``ops``: further commands by name, each run before its answer.
+    """
     send({'ready': True})
     while True:
         command = receive()
         if command.get('op') == 'stop':
             return
+        (ops or {}).get(command.get('op'), lambda: None)()
         answer = {'ok': True, 'time': time.monotonic()}
         if extra is not None:
             answer.update(extra())
@@ -78,6 +84,13 @@ class SharedSocket:
     (and unpacks) every frame: 8 drives cost 8 times the receiving, and on a busy machine
     they missed SYNCs and SDO requests. Here one socket receives and hands each drive, on a
     :class:`SharedUdpBus`, only the frames a drive takes (those a master sends it).
+
+    Once told to ``generate``, the drives' synchronous TPDOs (``default_drive_pdos(1)``) come
+    from a raw frame generator instead, so that the simulation does not set the limit of a
+    control-rate measurement: each SYNC is answered with every drive's TPDO 1 as the drive
+    last sent it (statusword, mode, torque) and its TPDO 2 with the target position of its
+    last RPDO 1 as the actual position (velocity 0). The drives themselves still answer SDO,
+    NMT and heartbeats, but take neither SYNC nor RPDOs any more.
     """
 
     def __init__(self, channel: str, bus_options: Dict, node_ids):
@@ -85,6 +98,9 @@ class SharedSocket:
         self._node_ids = set(node_ids)
         self._send_lock = threading.Lock()
         self._members: Dict[int, 'SharedUdpBus'] = {}
+        self._sent: Dict[int, bytes] = {}  # COB-ID: the data a drive last sent on it
+        self._targets: Dict[int, bytes] = {}  # node: target position of its last RPDO 1
+        self._generating = False
         self._running = True
         self._thread = threading.Thread(target=self._receive, daemon=True)
         self._thread.start()
@@ -100,7 +116,24 @@ class SharedSocket:
     def send(self, message: can.Message) -> None:
         """Send a drive's frame."""
         with self._send_lock:
+            self._sent[message.arbitration_id] = bytes(message.data)
             self._bus.send(message)
+
+    def generate(self) -> None:
+        """Answer SYNC with generated TPDOs from now on (see the class)."""
+        self._generating = True
+
+    def _answer_sync(self) -> None:
+        for node_id in sorted(self._node_ids):
+            status = self._sent.get(0x180 + node_id)
+            if status is None:
+                continue
+            position = self._targets.get(node_id, self._sent.get(0x280 + node_id,
+                                                                 bytes(8))[:4])
+            for cob_id, data in ((0x180 + node_id, status),
+                                 (0x280 + node_id, position + bytes(4))):
+                self._bus.send(can.Message(arbitration_id=cob_id, data=data,
+                                           is_extended_id=False))
 
     def close(self) -> None:
         """Stop receiving and close the socket."""
@@ -114,6 +147,13 @@ class SharedSocket:
             if message is None:
                 continue
             cob_id = message.arbitration_id
+            if self._generating and cob_id == SYNC_COB_ID:
+                with self._send_lock:
+                    self._answer_sync()
+                continue
+            if self._generating and cob_id & 0x780 == 0x200:  # RPDO 1: taken here
+                self._targets[cob_id & 0x7F] = bytes(message.data[2:6])
+                continue
             if cob_id in (0x000, SYNC_COB_ID, 0x7E5):  # NMT, SYNC, LSS: every drive's
                 members = list(self._members.values())
             elif 0x700 < cob_id < 0x780 and cob_id - 0x700 not in self._node_ids:
@@ -184,7 +224,8 @@ def run_drives(args, bus_options: Dict) -> None:
     for drive in drives:
         drive.start()
     try:
-        _serve(lambda: {'states': {drive.node_id: drive.drive_state for drive in drives}})
+        _serve(lambda: {'states': {drive.node_id: drive.drive_state for drive in drives}},
+               {'generate': shared.generate} if shared is not None else None)
     finally:
         for drive in drives:
             drive.stop()

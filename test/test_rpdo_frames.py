@@ -55,6 +55,9 @@ class _Network:
     def subscribe(self, *_):
         pass
 
+    def unsubscribe(self, *_):
+        pass
+
     def hold_next(self) -> None:
         self._hold = True
 
@@ -180,3 +183,102 @@ def test_a_write_waiting_on_a_layout_read_again_is_answered_not_sent():
     assert not result.success and 'not sent' in result.message, result.message
     assert after.result(WAIT).success
     assert network.frames == [(COB_ID, (9).to_bytes(4, 'little') + bytes(2))]
+
+
+# Streams: a drive's targets, one a cycle, sent at once and kept up each cycle.
+
+class _CycleSync(_Sync):
+    """A SYNC producer whose cycle the test walks through.
+
+    ``open`` until the guard before the SYNC, ``before()`` the quarter period before it,
+    ``sync()`` the SYNC itself.
+    """
+
+    def __init__(self):
+        super().__init__()
+        self.open = True
+        self._before = []
+
+    def open_for_rpdos(self) -> bool:
+        return self.open
+
+    def before_next_sync(self, callback) -> bool:
+        self._before.append(callback)
+        return True
+
+    def before(self) -> None:
+        callbacks, self._before = self._before, []
+        for callback in callbacks:
+            callback()
+
+
+def streaming_service():
+    service, network, _ = service_with_a_synchronous_rpdo()
+    sync = _CycleSync()
+    service._sync = sync
+    return service, network, sync
+
+
+def test_a_target_of_a_stream_goes_out_at_once_when_it_is_in_before_the_next_sync():
+    service, network, _ = streaming_service()
+    written = service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=1.0)
+    assert written.result(WAIT).success
+    assert network.frames == [(COB_ID, bytes(2) + (5).to_bytes(4, 'little'))], \
+        'the frame waited for a SYNC though it was in time for the next one'
+
+
+def test_a_target_of_a_stream_too_close_to_the_sync_waits_for_the_sync_after_it():
+    service, network, sync = streaming_service()
+    sync.open = False
+    written = service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=1.0)
+    assert network.frames == [], 'a frame racing the SYNC went out'
+    sync.sync()
+    assert written.result(WAIT).success
+    assert network.frames == [(COB_ID, bytes(2) + (5).to_bytes(4, 'little'))]
+
+
+def test_a_cycle_the_caller_leaves_without_a_target_gets_the_last_frame_again():
+    service, network, sync = streaming_service()
+    service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=10.0)
+    sync.before()  # the cycle of the target: it has its frame
+    assert len(network.frames) == 1, 'a cycle with a frame got another'
+    sync.sync()
+    sync.before()  # a cycle without a target
+    sync.sync()
+    sync.before()
+    assert network.frames == [(COB_ID, bytes(2) + (5).to_bytes(4, 'little'))] * 3
+
+
+def test_a_write_of_another_kind_ends_the_stream():
+    service, network, sync = streaming_service()
+    service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=10.0)
+    sync.before()
+    stop = service.write(NODE, 1, [EntryValue(CONTROLWORD, 0, STOP)])  # a command's write
+    sync.sync()
+    assert stop.result(WAIT).success
+    sync.before()
+    sync.sync()
+    sync.before()
+    words = [controlword(data) for cob_id, data in network.frames]
+    assert words == [0, STOP], f'frames after the stream ended: {network.frames}'
+
+
+def test_a_stream_ends_its_time_after_its_last_target():
+    service, network, sync = streaming_service()
+    service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=0.05)
+    sync.before()
+    threading.Event().wait(0.1)  # past the stream's time: no cycle keeps it up any more
+    sync.sync()
+    sync.before()
+    assert len(network.frames) == 1, 'a stream was kept up past its time'
+
+
+def test_shutdown_and_a_boot_end_the_streams():
+    for end in (lambda service: service.stop(), boot):
+        service, network, sync = streaming_service()
+        service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=10.0)
+        sync.before()
+        end(service)
+        sync.sync()
+        sync.before()
+        assert len(network.frames) == 1, 'a frame was sent again after the stream ended'

@@ -4,13 +4,18 @@ Each beat the drive service reads by SDO what no TPDO brings and watches the com
 timeout; then the listeners run (the ROS layer publishes ``~/joint_states``). Beats are due
 on absolute deadlines, so lateness never adds up; a beat missed on a loaded machine is
 skipped, not caught up in a burst.
+
+While the gateway produces SYNC, the beats follow it: one a SYNC cycle, as soon as every
+synchronous TPDO the drives answer that SYNC with is in (``took``), at the latest half a
+period after the SYNC. So ``~/joint_states`` carries each cycle's feedback once, early enough
+for a controller's answer to reach the drives before the next SYNC.
 """
 
 from concurrent.futures import Future
 import logging
 import threading
 import time
-from typing import Callable, List
+from typing import Callable, List, Optional
 
 from .objects import FEEDBACK
 
@@ -21,6 +26,8 @@ LOGGER = logging.getLogger(__name__)
 POLL_PERIOD = 0.1
 # The timeout of those reads.
 POLL_TIMEOUT = 2.0
+# With SYNC, the beat comes this fraction of a period after it when TPDOs are still missing.
+LATEST_BEAT = 0.5
 
 
 def poll(drive, lock, read_feedback: Callable[[object, List[int], float], Future],
@@ -65,13 +72,24 @@ def poll(drive, lock, read_feedback: Callable[[object, List[int], float], Future
 
 
 class FeedbackCycle:
-    """Call ``tick()``, then every listener, once every ``period`` seconds once started."""
+    """Call ``tick()``, then every listener, once every ``period`` seconds once started.
 
-    def __init__(self, period: float, tick: Callable[[], None]):
+    ``sync_point(fraction)``: the next time that fraction of a period after a SYNC, None while
+    no SYNC is produced (``SyncProducer.next_point``); the beats then follow the SYNC.
+    """
+
+    def __init__(self, period: float, tick: Callable[[], None],
+                 sync_point: Callable[[float], Optional[float]] = lambda _fraction: None):
         self._period = period
         self._tick = tick
+        self._sync_point = sync_point
         self._listeners: List[Callable[[], None]] = []
-        self._stopped = threading.Event()
+        self._stopped = False
+        self._wake = threading.Condition()
+        self._expected = 0  # synchronous TPDOs a SYNC cycle brings (0: not known)
+        self._arrived = 0   # of them, in the cycle that ends at _cycle_end
+        self._cycle_end = 0.0
+        self._beaten = -1.0  # the _cycle_end of the cycle last beaten
         self._thread = threading.Thread(target=self._run, name='drive cycle', daemon=True)
 
     def add_listener(self, listener: Callable[[], None]) -> None:
@@ -84,12 +102,42 @@ class FeedbackCycle:
 
     def stop(self) -> None:
         """Stop beating (a beat in progress finishes)."""
-        self._stopped.set()
+        with self._wake:
+            self._stopped = True
+            self._wake.notify()
+
+    def expect(self, frames: int) -> None:
+        """Take ``frames`` as the synchronous TPDOs each SYNC cycle brings (0: unknown)."""
+        with self._wake:
+            self._expected = frames
+
+    def took(self) -> None:
+        """Count a synchronous TPDO in; the last one of a cycle brings the beat forward."""
+        now = time.monotonic()
+        with self._wake:
+            if now >= self._cycle_end:  # the first of a new cycle
+                self._arrived = 0
+                self._cycle_end = self._sync_point(0.0) or now + self._period
+            self._arrived += 1
+            if self._arrived == self._expected:
+                self._wake.notify()
+
+    def _all_in(self) -> bool:
+        return (0 < self._expected <= self._arrived) and self._beaten != self._cycle_end
 
     def _run(self) -> None:
         due = time.monotonic()
         failures = set()
-        while not self._stopped.is_set():
+        while True:
+            with self._wake:
+                while not self._stopped and not self._all_in():
+                    timeout = due - time.monotonic()
+                    if timeout <= 0:
+                        break
+                    self._wake.wait(timeout)
+                if self._stopped:
+                    return
+                self._beaten = self._cycle_end
             for step in [self._tick, *self._listeners]:
                 try:
                     step()
@@ -99,8 +147,15 @@ class FeedbackCycle:
                         failures.add(kind)
                         LOGGER.error('the drive cycle failed (%s: %s); later failures of '
                                      'this kind are not logged', kind, error)
-            due += self._period
-            now = time.monotonic()
-            if due < now:
-                due = now + self._period
-            self._stopped.wait(due - now)
+            due = self._next_due(due)
+
+    def _next_due(self, due: float) -> float:
+        """Return when the next beat is due at the latest."""
+        now = time.monotonic()
+        following = self._sync_point(LATEST_BEAT)
+        if following is not None:
+            # The latest point of this cycle, unless the beat ran early in it: then the next.
+            return following if following - now > self._period / 2 else \
+                following + self._period
+        due += self._period
+        return due if due >= now else now + self._period

@@ -21,7 +21,7 @@ run by SDO.
 from concurrent.futures import Future
 import struct
 import threading
-from typing import Callable, Dict, Iterable, List, Optional, Set, Tuple
+from typing import Callable, Dict, FrozenSet, Iterable, List, Optional, Tuple
 
 from ..pdo.mapping import EntryValue
 from ..pdo.service import PdoService
@@ -101,6 +101,12 @@ class DriveObjects:
         self._held_reads = -1
         self._writes = 0  # writes begun, numbered
         self._controlword_write = 0  # the number of the latest write with a controlword
+        # Plans made on the RPDO mappings and held bytes ``_plans_for`` (the PDO service and
+        # this class replace those, never change them): a stream of targets plans once.
+        self._plans: Dict[tuple, Plan] = {}
+        self._plans_for: Tuple[object, object] = (None, None)
+        self._feedback_of: Tuple[object, bool] = (None, False)
+        self._feedback_found: Tuple[FrozenSet[int], int] = (frozenset(), 0)
 
     def forget(self) -> None:
         """Drop the commanded values (the drive booted: they are read again)."""
@@ -113,26 +119,46 @@ class DriveObjects:
         with self._lock:
             self.commanded.update(values)
 
-    def mapped_feedback(self) -> Set[int]:
+    def mapped_feedback(self) -> FrozenSet[int]:
         """Return the feedback objects the drive sends in an enabled, usable TPDO.
 
         A synchronous TPDO is sent only after a SYNC: while the gateway produces none, its
         objects are read by SDO (another master's SYNC is not counted on).
         """
-        if self.node_id not in self._pdo.node_ids or not self._operational():
-            return set()
-        tpdos, _ = self._pdo.mappings(self.node_id)
+        return self._feedback()[0]
+
+    def tpdos_every_sync(self) -> int:
+        """Return how many TPDOs with feedback the drive sends after every SYNC (type 1)."""
+        return self._feedback()[1]
+
+    def _feedback(self) -> Tuple[FrozenSet[int], int]:
+        if not self._pdo.serves(self.node_id) or not self._operational():
+            return frozenset(), 0
+        tpdos = self._pdo.transmit_mappings(self.node_id)
         producing = self._sync_producing()
-        return {entry.index for mapping in tpdos.values()
-                if mapping.enabled and not mapping.problem
-                and (producing or not mapping.synchronous) for entry in mapping.entries
-                if entry.index in FEEDBACK and entry.subindex == 0}
+        with self._lock:  # worked out once a mapping read (the feedback cycle asks each beat)
+            if self._feedback_of[0] is not tpdos or self._feedback_of[1] != producing:
+                usable = [[entry.index for entry in mapping.entries
+                           if entry.index in FEEDBACK and entry.subindex == 0]
+                          for mapping in tpdos.values()
+                          if mapping.enabled and not mapping.problem
+                          and (producing or not mapping.synchronous)]
+                every_sync = sum(1 for mapping in tpdos.values()
+                                 if mapping.enabled and not mapping.problem and producing
+                                 and mapping.transmission_type == 1
+                                 and any(entry.index in FEEDBACK and entry.subindex == 0
+                                         for entry in mapping.entries))
+                self._feedback_of = (tpdos, producing)
+                self._feedback_found = (frozenset(index for indexes in usable
+                                                  for index in indexes), every_sync)
+            return self._feedback_found
 
     def mapping_reads(self) -> int:
         """Return how many times the PDO service read the drive's mapping (0: none)."""
         return self._pdo.mapping_reads(self.node_id) if self.node_id in self._pdo.node_ids else 0
 
-    def write(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':
+    def write(self, values: Dict[int, int], timeout: float,
+              stream: float = 0.0) -> 'Future[SdoResult]':
         """Send ``values`` (object: value) to the drive; resolves when all went out or why not.
 
         Frames are chosen and ordered by ``frames.plan``: what no usable RPDO carries
@@ -141,6 +167,7 @@ class DriveObjects:
         frames built from ``commanded`` go out in the order it changed. A part that waits
         (for an SDO confirmation or a SYNC) is not sent when a later write changed the
         controlword meanwhile: the drive has that one, and this write is answered failed.
+        ``stream``: the write is a target of a stream (``PdoService.write``).
         """
         data = {index: encode(index, value) for index, value in values.items()}
         with self._lock:
@@ -159,13 +186,14 @@ class DriveObjects:
             steps.append(lambda: self._write_by_sdo(
                 [(index, data[index]) for index in chosen.by_sdo], timeout))
         if frames:
-            steps.append(lambda: self._send_frames(frames, previous, write, last is None))
+            steps.append(lambda: self._send_frames(frames, previous, write, last is None,
+                                                   stream))
         if last is not None:
             steps.append(lambda: self._send_frames([last], previous, write, True))
         return _chain(steps)
 
     def _send_frames(self, frames: List[Frame], previous: Optional[int], write: int,
-                     carry_controlword: bool) -> 'Future[SdoResult]':
+                     carry_controlword: bool, stream: float = 0.0) -> 'Future[SdoResult]':
         """Send ``frames`` of write number ``write`` (the last one with its controlword).
 
         Checked and sent under the lock a stop by SDO takes too (``write_by_sdo``): a part
@@ -193,7 +221,7 @@ class DriveObjects:
                     EntryValue(index, 0, data=encode(index, value))
                     for index, value in carried.items()] + [
                     EntryValue(index, sub, data=held[(index, sub)])
-                    for index, sub in frame.held]))
+                    for index, sub in frame.held], stream=stream))
             if carry_controlword and write == self._controlword_write:
                 # A synchronous controlword frame is applied a SYNC after the frames before
                 # it: the others are not sent again at once, or the controlword would come
@@ -309,13 +337,21 @@ class DriveObjects:
     def _plan(self, indexes: List[int], commanded: Dict[int, int],
               controlword_known: bool) -> Plan:
         """Return how a write of ``indexes`` goes out now (``frames.plan``)."""
-        if self.node_id not in self._pdo.node_ids or not self._operational():
+        if not self._pdo.serves(self.node_id) or not self._operational():
             return plan(indexes, (), controlword_known)
-        _, rpdos = self._pdo.mappings(self.node_id)
+        rpdos = self._pdo.receive_mappings(self.node_id)
+        producing = self._sync_producing()
+        key = (tuple(indexes), frozenset(commanded), controlword_known, producing)
         with self._lock:
-            held = dict(self._held)
-        return plan(indexes, usable_frames(rpdos, commanded, self._sync_producing(), held),
+            held = self._held
+            if self._plans_for[0] is not rpdos or self._plans_for[1] is not held:
+                self._plans, self._plans_for = {}, (rpdos, held)
+            chosen = self._plans.get(key)
+            if chosen is None:
+                chosen = self._plans[key] = plan(
+                    indexes, usable_frames(rpdos, commanded, producing, held),
                     controlword_known)
+        return chosen
 
 
 def _chain(steps: List[Callable[[], 'Future[SdoResult]']]) -> 'Future[SdoResult]':

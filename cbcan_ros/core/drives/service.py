@@ -52,6 +52,9 @@ HOMING_TIMEOUT = 60.0
 MOVE_TIMEOUT = 60.0
 # A drive's initial read that failed is tried again on a later heartbeat, at most this often.
 REREAD_INTERVAL = 1.0
+# How long a stream of targets is kept up each SYNC cycle after its last target when the
+# command timeout is off (0): a short pause of the caller, not for ever.
+STREAM_WITHOUT_TIMEOUT = 0.5
 
 
 class DriveService:
@@ -87,7 +90,7 @@ class DriveService:
         self._targets_failing: set = set()
         self._checks = checks.RequestChecks(self._drives, self._lock, write_protection,
                                             bus_down, lambda: self._closing)
-        self._cycle = FeedbackCycle(settings.feedback_period, self._tick)
+        self._cycle = FeedbackCycle(settings.feedback_period, self._tick, sync.next_point)
         if self._drives:
             pdo.add_listener(self._on_pdo)
             monitor.add_listener(self._on_node_states)
@@ -240,7 +243,12 @@ class DriveService:
                 self._runner.call_soon(lambda: self._commands.set_point(drive, round(value),
                                                                         reads))
                 return DriveResult(True, 'set-point handed to the drive', status)
-            sent = drive.objects.write(values, self.settings.feedback_period * 10 or 0.5)
+            # A target alone is one of a stream, which the PDO service keeps up each cycle
+            # for as long as the command timeout waits for the next one.
+            stream = (0.0 if cia402.CONTROLWORD in values
+                      else self.settings.command_timeout or STREAM_WITHOUT_TIMEOUT)
+            sent = drive.objects.write(values, self.settings.feedback_period * 10 or 0.5,
+                                       stream)
         sent.add_done_callback(lambda done: self._log_failed_target(node_id, done))
         return DriveResult(True, 'sent', status)
 
@@ -340,6 +348,8 @@ class DriveService:
             with self._lock:
                 drive.took_tpdo(values)
             self._apply(drive, values, received.timestamp)
+            if received.mapping.transmission_type == 1:
+                self._cycle.took()
 
     @prompt
     def _on_heartbeat(self, can_id: int, data: bytearray, _timestamp: float) -> None:
@@ -493,6 +503,8 @@ class DriveService:
     # Each beat of the feedback cycle: SDO reads of what no TPDO brings, the command timeout.
 
     def _tick(self) -> None:
+        self._cycle.expect(sum(drive.objects.tpdos_every_sync()
+                               for drive in self._drives.values() if drive.heard))
         for drive in self._drives.values():
             if not self._closing:
                 poll(drive, self._lock, self.read_feedback)

@@ -9,6 +9,13 @@ receive time; the bus thread only checks a frame's length and hands it to the li
 :class:`~cbcan_ros.core.pdo.mapping.ReceivedPdo`, which is decoded when read, in the
 listener's own thread. Its receive PDOs are sent on request: asynchronous ones at once,
 synchronous ones right after a SYNC the gateway produces (``sync.py``).
+
+A stream of synchronous frames (a drive's targets, one a control cycle) goes out at once
+instead, when it is in before the next SYNC, so a target reaches the drive in the cycle its
+caller sent it; and a cycle the caller leaves without a frame gets the last one again, a
+quarter period before the SYNC, as a PLC master sends its RPDOs every cycle. A stream lasts
+until a while after its last frame (the caller says how long), a write of another kind to
+the device, a boot, a mapping read or shutdown.
 """
 
 from concurrent.futures import Future
@@ -61,6 +68,7 @@ class _Device:
     rpdos: Dict[int, PdoMapping] = field(default_factory=dict)
     last_sent: Dict[int, bytes] = field(default_factory=dict)
     last_received: Dict[int, float] = field(default_factory=dict)
+    sent_at: Dict[int, float] = field(default_factory=dict)  # RPDO: when its frame last went
     heard: bool = False
     wanted: int = 0       # mapping reads asked for (first heard, every boot-up)
     done: int = 0         # the request the current mapping answers
@@ -107,6 +115,10 @@ class PdoService:
         # (node, RPDO): the writes waiting for the SYNC, each with its device's boot count
         # and the mapping it was written on
         self._pending_sync: Dict[Tuple[int, int], List[Tuple[Future, int, PdoMapping]]] = {}
+        # (node, RPDO) of the streams: repeated each cycle without a frame, until this time
+        self._streams: Dict[Tuple[int, int], float] = {}
+        self._repeating = False  # a repeat of the streams waits for the next SYNC
+        self._repeated_at = 0.0
         self._thread = threading.Thread(target=self._read_mappings, name='pdo-mappings',
                                         daemon=True)
 
@@ -130,6 +142,7 @@ class PdoService:
         """Answer every write still waiting for a SYNC; stop reading, receiving, sending."""
         with self._lock:
             self._closing = True
+            self._streams.clear()
             pending, self._pending_sync = self._pending_sync, {}
             self._lock.notify_all()
             self._by_cob.clear()
@@ -171,6 +184,20 @@ class PdoService:
         with self._lock:
             device = self._devices[node_id]
             return dict(device.tpdos), dict(device.rpdos)
+
+    def serves(self, node_id: int) -> bool:
+        """Return whether ``node_id`` is a device served."""
+        return node_id in self._devices
+
+    def transmit_mappings(self, node_id: int) -> Dict[int, PdoMapping]:
+        """Return the TPDOs of a device served as read (replaced by a read, never changed)."""
+        with self._lock:
+            return self._devices[node_id].tpdos
+
+    def receive_mappings(self, node_id: int) -> Dict[int, PdoMapping]:
+        """Return the RPDOs of a device served as read (replaced by a read, never changed)."""
+        with self._lock:
+            return self._devices[node_id].rpdos
 
     def read_again(self, node_id: int) -> 'Future[str]':
         """Read the mapping of ``node_id`` again; resolves to '' once read, or why not."""
@@ -214,23 +241,28 @@ class PdoService:
         self._log_once(node_id, re.sub(r'\d', '', problem)[:80], problem)
 
     def write(self, node_id: int, number: int, values: Sequence[EntryValue] = (),
-              data: bytes = b'') -> 'Future[SdoResult]':
+              data: bytes = b'', stream: float = 0.0) -> 'Future[SdoResult]':
         """Send RPDO ``number`` of ``node_id`` with ``values`` (or the whole frame ``data``).
 
         Resolves once the frame went out (a synchronous RPDO: after the next SYNC) or why
-        not; never raises.
+        not; never raises. ``stream`` (seconds): the frame is one of a stream of a frame a
+        cycle, which the next ``stream`` seconds may repeat (see the module's text); a write
+        without it ends the streams of the device.
         """
         checked = self._check(node_id, number, values, data)
         if isinstance(checked, SdoResult):
             return resolved(self._refused(node_id, checked))
         mapping = checked
+        key = (node_id, number)
         if mapping.synchronous and self._sync.producing:
+            if stream and self._sync.open_for_rpdos():
+                return self._send_stream(mapping, values, data, stream)
             future: Future = Future()
-            key = (node_id, number)
             with self._lock:
                 frame = self._merge(mapping, values, data)
                 if isinstance(frame, SdoResult):
                     return resolved(self._refused(node_id, frame))
+                self._follow_stream(key, stream)
                 first = key not in self._pending_sync
                 self._pending_sync.setdefault(key, []).append(
                     (future, self._devices[node_id].life, mapping))
@@ -240,9 +272,55 @@ class PdoService:
         with self._frames:
             with self._lock:
                 frame = self._merge(mapping, values, data)
+                if not isinstance(frame, SdoResult):
+                    self._follow_stream(key, 0.0)
             if isinstance(frame, SdoResult):
                 return resolved(self._refused(node_id, frame))
             return resolved(self._send(mapping, frame))
+
+    def _send_stream(self, mapping: PdoMapping, values: Sequence[EntryValue], data: bytes,
+                     seconds: float) -> 'Future[SdoResult]':
+        """Send a stream's synchronous frame at once (it is in before the next SYNC)."""
+        with self._frames:
+            with self._lock:
+                frame = self._merge(mapping, values, data)
+                if isinstance(frame, SdoResult):
+                    return resolved(self._refused(mapping.node_id, frame))
+                self._follow_stream((mapping.node_id, mapping.number), seconds)
+            return resolved(self._send(mapping, frame))
+
+    def _follow_stream(self, key: Tuple[int, int], seconds: float) -> None:
+        """Start, prolong (``seconds``) or end (0) the streams of a device (lock held)."""
+        if not seconds:
+            for other in [other for other in self._streams if other[0] == key[0]]:
+                del self._streams[other]
+            return
+        self._streams[key] = time.monotonic() + seconds
+        if not self._repeating:
+            self._repeating = self._sync.before_next_sync(self._repeat_streams)
+
+    def _repeat_streams(self) -> None:
+        """Send again the frame of every stream that got none this cycle (the SYNC thread)."""
+        again = []
+        with self._frames:
+            with self._lock:
+                now = time.monotonic()
+                for key, until in list(self._streams.items()):
+                    device = self._devices[key[0]]
+                    mapping = device.rpdos.get(key[1])
+                    if (self._closing or now > until or mapping is None
+                            or key[1] not in device.last_sent):
+                        del self._streams[key]
+                    elif device.sent_at.get(key[1], 0.0) < self._repeated_at:
+                        again.append((mapping, device.last_sent[key[1]]))
+                self._repeating = bool(self._streams) and self._sync.before_next_sync(
+                    self._repeat_streams)
+                if not self._repeating:
+                    again = []  # no SYNC comes (the bus is down, or shutdown)
+            for mapping, frame in again:
+                self._send(mapping, frame)
+            with self._lock:  # frames sent from now on are the next cycle's
+                self._repeated_at = time.monotonic()
 
     def carry(self, node_id: int, values: Sequence[EntryValue], skip=(),
               resend: bool = True) -> None:
@@ -260,6 +338,7 @@ class PdoService:
             again = []
             with self._lock:
                 device = self._devices.get(node_id)
+                self._follow_stream((node_id, 0), 0.0)
                 for number, mapping in (device.rpdos.items() if device else ()):
                     if number in skip:
                         continue
@@ -360,7 +439,9 @@ class PdoService:
                 self._devices[mapping.node_id].refused += 1
             return SdoResult.failed(f'{mapping.name} was not sent: {error}')
         with self._lock:
-            self._devices[mapping.node_id].sent += 1
+            device = self._devices[mapping.node_id]
+            device.sent += 1
+            device.sent_at[mapping.number] = time.monotonic()
         return SdoResult.ok()
 
     def _flush(self, key: Tuple[int, int]) -> None:
@@ -399,6 +480,7 @@ class PdoService:
             if boot:
                 device.last_sent.clear()  # its RPDOs hold nothing of before
                 device.life += 1
+                self._follow_stream((device.node_id, 0), 0.0)
             retry = (device.done < 0 and
                      time.monotonic() - device.failed_at >= REREAD_INTERVAL)
             if (boot or first or retry) and not device.booted:
@@ -443,6 +525,7 @@ class PdoService:
                                 and rpdos[number].entries == device.rpdos[number].entries}
             device.tpdos, device.rpdos = tpdos, rpdos
             device.last_received.clear()
+            self._follow_stream((node_id, 0), 0.0)
             device.done = request
             device.mapping_text = (f'read: {len(tpdos)} TPDOs, {len(rpdos)} RPDOs at '
                                    f'{time.strftime("%H:%M:%S")}')

@@ -11,12 +11,16 @@ on the new bus when it comes back (the counter starts again at 1, as after a dev
 Synchronous RPDOs must reach a device after a SYNC to be applied at the following one; a
 thread of ours sends them a quarter period after the SYNC, on the same monotonic time grid as
 the periodic task (python-can's thread and the kernel's timer both keep a fixed grid from
-their start, without drift).
+their start, without drift). The same grid tells a stream of targets whether a frame sent now
+is in before the next SYNC (``open_for_rpdos``), and calls back a quarter period before that
+SYNC (``before_next_sync``), the last moment a frame is surely in, to repeat a stream's frame
+in a cycle its caller left without one.
 """
 
 from collections import deque
 from dataclasses import dataclass
 import logging
+import math
 import statistics
 import threading
 import time
@@ -33,7 +37,8 @@ MAX_COUNTER = 240
 # Intervals between SYNCs heard on the bus that the measured period is taken over.
 PERIOD_SAMPLES = 200
 # Synchronous RPDOs leave this fraction of a period after the SYNC: late enough never to
-# overtake it, early enough for the synchronous window of any device.
+# overtake it, early enough for the synchronous window of any device. A frame of a stream
+# is sent at once unless this fraction or less of the period is left before the next SYNC.
 RPDO_OFFSET = 0.25
 
 
@@ -73,6 +78,7 @@ class SyncProducer:
         self._starts = 0
         self._closing = False
         self._after_sync: List[Callable[[], None]] = []
+        self._before_sync: List[Callable[[], None]] = []
         self._heard = 0
         self._last_heard: Optional[float] = None
         self._intervals: deque = deque(maxlen=PERIOD_SAMPLES)
@@ -111,6 +117,40 @@ class SyncProducer:
             self._after_sync.append(callback)
             self._lock.notify_all()
             return True
+
+    def before_next_sync(self, callback: Callable[[], None]) -> bool:
+        """Call ``callback()`` a quarter period before the next SYNC; False when none comes."""
+        with self._lock:
+            if self._task is None or self._closing:
+                return False
+            self._before_sync.append(callback)
+            self._lock.notify_all()
+            return True
+
+    def open_for_rpdos(self) -> bool:
+        """Return whether a synchronous RPDO sent now is applied at the next SYNC.
+
+        True from a SYNC until a quarter period before the next one, while SYNC is produced.
+        """
+        with self._lock:
+            if self._task is None:
+                return False
+            phase = ((time.monotonic() - self._grid_start) / self.period) % 1
+        return phase < 1 - RPDO_OFFSET
+
+    def next_point(self, fraction: float) -> Optional[float]:
+        """Return the next monotonic time ``fraction`` of a period after a SYNC, or None.
+
+        None while no SYNC is produced (the bus is down, or SYNC is not configured).
+        """
+        with self._lock:
+            if self._task is None:
+                return None
+            return self._next_point(fraction, time.monotonic())
+
+    def _next_point(self, fraction: float, now: float) -> float:
+        cycle = math.floor((now - self._grid_start) / self.period - fraction) + 1
+        return self._grid_start + (cycle + fraction) * self.period
 
     def status(self) -> SyncStatus:
         """Return the SYNC status now."""
@@ -156,23 +196,31 @@ class SyncProducer:
                 LOGGER.debug('stopping the SYNC task raised %r', error)
         # Whatever waited for a SYNC of this task is answered by its own caller's checks.
         waiting, self._after_sync = self._after_sync, []
+        waiting, self._before_sync = waiting + self._before_sync, []
         return waiting
 
     def _run_after_sync(self) -> None:
+        never = math.inf
         while True:
             with self._lock:
-                while not self._closing and not (self._after_sync and self._task is not None):
+                while not self._closing and not ((self._after_sync or self._before_sync)
+                                                 and self._task is not None):
                     self._lock.wait()
                 if self._closing:
                     return
-                cycles = (time.monotonic() - self._grid_start) / self.period
-                due = self._grid_start + (int(cycles) + 1 + RPDO_OFFSET) * self.period
-                if cycles % 1 < RPDO_OFFSET:
-                    due -= self.period  # the SYNC of this cycle just went out
-                self._lock.wait(max(due - time.monotonic(), 0.0))
+                now = time.monotonic()
+                after = self._next_point(RPDO_OFFSET, now) if self._after_sync else never
+                before = (self._next_point(1 - RPDO_OFFSET, now) if self._before_sync
+                          else never)
+                due = min(after, before)
+                self._lock.wait(max(due - now, 0.0))
                 if time.monotonic() < due or self._task is None:
                     continue
-                callbacks, self._after_sync = self._after_sync, []
+                callbacks = []
+                if after == due:
+                    callbacks, self._after_sync = self._after_sync, []
+                if before == due:
+                    callbacks, self._before_sync = callbacks + self._before_sync, []
             _run_all(callbacks)
 
     @prompt
