@@ -15,6 +15,7 @@ import logging
 import math
 import queue
 import threading
+import time
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
@@ -38,6 +39,9 @@ PDO_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
 
 # Frames waiting for the publishing thread; beyond this new ones are dropped (counted).
 QUEUE_LIMIT = 100_000
+# How often the bus thread asks whether a device's rpdo topic has subscribers: a new
+# subscriber gets frames from at most this long after it matched.
+SUBSCRIBERS_CHECK = 0.1
 
 
 def topic(node_id: int, direction: str) -> str:
@@ -108,6 +112,7 @@ class PdoTopics:
                                      PDO_QOS)
             for node_id in service.node_ids]
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._subscribers: Dict[int, Tuple[float, bool]] = {}  # node: (asked at, any)
         self._closing = False
         self.dropped = 0
         self._thread = threading.Thread(target=self._publish_queued, name='pdo publisher',
@@ -132,12 +137,25 @@ class PdoTopics:
         # nobody subscribes to is dropped here rather than waking the publishing thread for
         # nothing (volatile: a later subscriber would never get it), as drives send theirs
         # every few milliseconds whether anyone listens or not.
-        if not self._publishers[received.mapping.node_id].get_subscription_count():
+        if not self._subscribed(received.mapping.node_id):
             return
         if self._queue.qsize() >= QUEUE_LIMIT:
             self.dropped += 1
             return
         self._queue.put(received)
+
+    def _subscribed(self, node_id: int) -> bool:
+        """Return whether ``~/node_<id>/rpdo`` has subscribers.
+
+        Asked of rclpy at most every ``SUBSCRIBERS_CHECK``: not a call into rcl for each of
+        thousands of frames a second.
+        """
+        now = time.monotonic()
+        known = self._subscribers.get(node_id)
+        if known is None or now - known[0] >= SUBSCRIBERS_CHECK:
+            known = self._subscribers[node_id] = (
+                now, bool(self._publishers[node_id].get_subscription_count()))
+        return known[1]
 
     def _publish_queued(self) -> None:
         failures = set()

@@ -57,10 +57,40 @@ def decode(index: int, data: bytes) -> int:
     return struct.unpack(cia402.FORMATS[index], bytes(data[:size]).ljust(size, b'\0'))[0]
 
 
+def feedback_decoder(mapping) -> Callable[[bytes], Dict[int, int]]:
+    """Return what takes the feedback objects out of a frame of TPDO ``mapping``.
+
+    By the profile's types, as :func:`decode` reads them: without an EDS the PDO service
+    takes every entry as unsigned, and a position below 0 would read as 2**32 - x. Worked
+    out once a mapping: the bus thread runs it for every frame.
+    """
+    fields = []
+    for entry in mapping.entries:
+        if entry.index in FEEDBACK and entry.subindex == 0:
+            width = 8 * struct.calcsize(cia402.FORMATS[entry.index])
+            signed = cia402.FORMATS[entry.index][-1].islower()
+            fields.append((entry.index, entry.offset, (1 << min(entry.bits, width)) - 1,
+                           width if signed else 0))
+    size = mapping.size
+
+    def values(data: bytes) -> Dict[int, int]:
+        frame = int.from_bytes(data[:size], 'little')
+        found = {}
+        for index, offset, mask, signed_width in fields:
+            value = (frame >> offset) & mask
+            if signed_width and value >> (signed_width - 1):
+                value -= 1 << signed_width
+            found[index] = value
+        return found
+    return values
+
+
 def all_of(futures: List[Future]) -> 'Future[SdoResult]':
     """Return a future of the first failure among ``futures`` (SdoResults), else success."""
     if not futures:
         return resolved(SdoResult.ok())
+    if len(futures) == 1:
+        return futures[0]
     done: Future = Future()
     remaining = [len(futures)]
     lock = threading.Lock()

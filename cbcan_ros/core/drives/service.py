@@ -41,7 +41,7 @@ from . import safety as safety
 from .checks import SHUTTING_DOWN
 from .commands import DriveCommands
 from .cycle import FeedbackCycle, poll
-from .objects import decode, DriveObjects, FEEDBACK
+from .objects import DriveObjects, FEEDBACK, feedback_decoder
 from .status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed, shown, updated
 
 LOGGER = logging.getLogger(__name__)
@@ -80,6 +80,8 @@ class DriveService:
                 lambda n=node_id: monitor.operational(n)), DriveStatus(node_id))
             for node_id in sorted(set(settings.node_ids))}
         self._listeners: List[Callable[[DriveStatus], None]] = []
+        # (node, TPDO): (mapping, its feedback decoder); the bus thread's alone.
+        self._decoders: Dict[Tuple[int, int], tuple] = {}
         # Why a drive may not be enabled though it answers (its boot failed), or None.
         self.boot_refusal: Callable[[int], Optional[str]] = lambda node_id: None
         self._runner = CoroutineRunner('drives')
@@ -336,14 +338,15 @@ class DriveService:
     # Frames and node states, from the bus thread.
 
     def _on_pdo(self, received: ReceivedPdo) -> None:
-        drive = self._drives.get(received.mapping.node_id)
+        mapping = received.mapping
+        drive = self._drives.get(mapping.node_id)
         if drive is None:
             return
-        # Decoded by the profile's types: without an EDS the PDO service takes every entry
-        # as unsigned, and a position below 0 would read as 2**32 - x.
-        values = {decoded.entry.index: decode(decoded.entry.index, decoded.data)
-                  for decoded in received.entries
-                  if decoded.entry.index in FEEDBACK and decoded.entry.subindex == 0}
+        key = (mapping.node_id, mapping.number)
+        known = self._decoders.get(key)
+        if known is None or known[0] is not mapping:  # a mapping read replaced it
+            known = self._decoders[key] = (mapping, feedback_decoder(mapping))
+        values = known[1](received.data)
         if values:
             with self._lock:
                 drive.took_tpdo(values)
