@@ -6,7 +6,9 @@ a test: a target that is not met is reported, never fatal.
 
 Processes, each on one private udp_multicast bus: the installed ``cbcan_node`` (8 drives of
 ``drives.nodes`` in CSP, SYNC from the gateway, every PDO synchronous, the command timeout
-at its default); the 8 simulated drives (``bench_drive_host.py drives``, one socket); a bare
+at its default); the 8 simulated drives (``bench_drive_host.py drives``, one socket), whose
+synchronous TPDOs come from a raw frame generator once the drives are enabled (the
+simulation must not set the limit); a bare
 python-can receiver process (``bench_drive_host.py reader``) that counts every frame and
 records the SYNCs and the RPDOs with the kernel's receive timestamps; and this process, the
 robot program: a controller that answers every ``~/joint_states`` message with a
@@ -14,7 +16,7 @@ robot program: a controller that answers every ``~/joint_states`` message with a
 
 Measured over one window:
 - node CPU beside the bare receiver's (both from /proc): the frames the node must take are
-  the same the receiver takes;
+  the same the receiver takes; the node's CPU split by thread (named by py-spy);
 - cycles missed: SYNC intervals in which a drive's RPDO did not come (at the receiver), and
   SYNCs whose TPDOs did not reach ``~/joint_states`` (SYNCs at the receiver against
   ``joint_states`` messages here);
@@ -29,6 +31,7 @@ Measured over one window:
 import argparse
 import json
 import os
+import re
 import shutil
 import struct
 import subprocess
@@ -129,6 +132,36 @@ def profile(pid: int, seconds: float, path: str) -> Optional[str]:
     return None
 
 
+def thread_names(pid: int) -> Dict[int, str]:
+    """Return the node's Python thread names by native thread id (py-spy), {} without it."""
+    spy = shutil.which('py-spy')
+    if spy is None:
+        return {}
+    names: Dict[int, str] = {}
+    for _ in range(5):  # a dump of a process busy in native code may fail: try again
+        dump = subprocess.run([spy, 'dump', '--pid', str(pid), '--nonblocking'],
+                              capture_output=True, text=True, timeout=60)
+        names = {int(tid): name for tid, name in re.findall(
+            r'Thread (\d+) \(\w+\): "([^"]*)"', dump.stdout)}
+        if names:
+            break
+        progress(f'py-spy dump of the node failed: {dump.stderr.strip()[-200:]}')
+    return names
+
+
+def thread_ticks(pid: int) -> Dict[int, int]:
+    """Return utime + stime of every thread of ``pid``, in clock ticks, by thread id."""
+    ticks = {}
+    for tid in os.listdir(f'/proc/{pid}/task'):
+        try:
+            with open(f'/proc/{pid}/task/{tid}/stat') as stat:
+                fields = stat.read().rsplit(')', 1)[1].split()
+        except OSError:
+            continue
+        ticks[int(tid)] = int(fields[11]) + int(fields[12])
+    return ticks
+
+
 def summarise_profile(path: str, top: int = 25) -> List[str]:
     """Return the functions the node spent the most samples in (self and total), as text."""
     own: Dict[str, int] = {}
@@ -214,7 +247,9 @@ def row(args, caller: Caller, hertz: str) -> Dict:
         _stats(helpers['reader'])  # forget what was recorded before the window
         pids = {'node': node.pid, 'reader': helpers['reader'].pid,
                 'drives': helpers['drives'].pid}
+        names = thread_names(node.pid)
         states_before = controller.states
+        threads_before = thread_ticks(node.pid)
         cpu_before = {name: proc_cpu_seconds(pid) for name, pid in pids.items()}
         started = time.monotonic()
         profiled = None
@@ -223,6 +258,7 @@ def row(args, caller: Caller, hertz: str) -> Dict:
                                os.path.join(args.output, f'control_rate_{hertz}_profile.raw'))
         time.sleep(max(0.0, args.seconds - (time.monotonic() - started)))
         cpu_after = {name: proc_cpu_seconds(pid) for name, pid in pids.items()}
+        threads_after = thread_ticks(node.pid)
         elapsed = time.monotonic() - started
         states = controller.states - states_before
         recorded = _stats(helpers['reader'])
@@ -238,6 +274,11 @@ def row(args, caller: Caller, hertz: str) -> Dict:
         for helper in reversed(list(helpers.values())):
             helper.stop()
     cpu = {name: 100 * (cpu_after[name] - cpu_before[name]) / elapsed for name in pids}
+    by_thread: Dict[str, float] = {}
+    for tid, ticks in threads_after.items():
+        name = names.get(tid, 'native (rclpy, DDS)')
+        by_thread[name] = by_thread.get(name, 0.0) + 100 * (
+            ticks - threads_before.get(tid, 0)) / os.sysconf('SC_CLK_TCK') / elapsed
     found = cycles(recorded['frames'], commands, base)
     result = {
         'hertz': int(hertz), 'window_s': elapsed, 'node_cpu': cpu['node'],
@@ -257,6 +298,8 @@ def row(args, caller: Caller, hertz: str) -> Dict:
         'after_sync_p99_ms': percentile(found['after_sync_ms'], 0.99)
         if found['after_sync_ms'] else None,
         'latency_samples': len(found['latencies_ms']),
+        'node_threads': {name: round(value, 1) for name, value in sorted(
+            by_thread.items(), key=lambda item: -item[1]) if value >= 0.05},
         'profile': profiled,
     }
     raw = os.path.join(args.output, f'control_rate_{hertz}_profile.raw')
@@ -346,6 +389,9 @@ def main(argv=None) -> int:
                        f'core; joint_states with fewer than 8 joints: '
                        f'{result["incomplete_states"]}; profile: '
                        f'{result["profile"] or f"control_rate_{hertz}_profile.txt"}\n')
+            threads = ', '.join(f'{name} {value:.1f} %'
+                                for name, value in result['node_threads'].items())
+            file.write(f'\n{hertz} Hz: node CPU by thread (% of a core): {threads}\n')
         for line in problems:
             file.write(f'\n{line}\n')
     with open(os.path.join(args.output, 'control_rate.json'), 'w') as file:
