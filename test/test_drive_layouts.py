@@ -13,6 +13,7 @@ from dataclasses import replace
 import struct
 
 from action_msgs.msg import GoalStatus
+from diagnostic_msgs.msg import DiagnosticArray
 import pytest
 from std_msgs.msg import Float64
 import test_drives
@@ -43,6 +44,7 @@ EXAMPLE_EDS = ROOT / 'config' / 'cia402_drive.eds'  # the vendor layout
 RPDO_COB_IDS = {1: 0x200, 2: 0x300, 3: 0x400, 4: 0x500}
 SDO_REQUEST = 0x600
 EXPEDITED_DOWNLOAD = 0x20  # command specifier 1 of a client's SDO request
+OK, WARN = b'\x00', b'\x01'  # diagnostic levels
 
 
 def writes_on_the_bus(frames: list, layout: str) -> list:
@@ -173,6 +175,41 @@ def test_a_move_the_drive_finishes_away_from_its_target_fails_naming_both(rig):
     assert axis.drive.position == start
     assert f'at position {start}, not at the target {start + 3000}' in result.message
     assert '(0x607A) read back: ' in result.message
+
+
+def test_a_stream_of_pp_targets_whose_last_set_point_is_missed_shows_it_in_diagnostics(rig):
+    axis = rig()
+    axis.enable(PP)
+    start = axis.drive.position
+    diagnostics = []
+    axis.gateway.client_node.create_subscription(DiagnosticArray, '/diagnostics',
+                                                 diagnostics.append, 10)
+
+    def drive_item():
+        for array in reversed(diagnostics[-3:]):
+            for status in array.status:
+                if status.name.endswith(f'drive {NODE}'):
+                    return status
+        return None
+    take = axis.drive._take_set_point
+
+    def stale(controlword):
+        # A drive that takes the set-point with the target it held before the frame.
+        axis.drive.node.object_dictionary.write(TARGET_POSITION, 0, start)
+        take(controlword)
+    axis.drive._take_set_point = stale
+    for step in (1, 2, 3):  # a stream: only the last one is checked
+        axis.target.publish(Float64(data=start / SCALE + step))
+    missed = wait_until(lambda: (drive_item() if drive_item() and drive_item().level == WARN
+                                 else None), WAIT, 'the missed set-point on /diagnostics')
+    shown = {pair.key: pair.value for pair in missed.values}['Last PP set-point streamed']
+    assert f'at position {start}, not at the target {start + 3000}' in shown, shown
+    assert 'the last PP set-point streamed was missed' in missed.message
+    axis.drive._take_set_point = take  # the next stream arrives: shown again as OK
+    axis.target.publish(Float64(data=start / SCALE + 1))
+    wait_until(lambda: axis.drive.position == start + 1000, WAIT, 'the drive at its target')
+    wait_until(lambda: drive_item() is not None and drive_item().level == OK, WAIT,
+               'the drive OK on /diagnostics once a stream reached its last set-point')
 
 
 def test_halt_resume_quick_stop_fault_reset_and_homing(rig, layout):

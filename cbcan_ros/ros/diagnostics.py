@@ -67,7 +67,8 @@ class Diagnostics:
       while an event-driven TPDO has been silent for twice its event timer, else OK. Its
       PDOs received and sent per second and the frames shorter than their mapping.
     - ``<node>: drive <id>`` for every drive: ERROR in FAULT (the error code and its
-      meaning), WARN while not heard, else OK with its state.
+      meaning), WARN while not heard or when the last set-point of its last stream of PP
+      targets was missed (shown until a later stream's is reached), else OK with its state.
     - ``<node>: SYNC`` while the gateway produces SYNC: ERROR while it is not on the bus,
       with the period configured and the one measured between SYNCs heard on the bus (an
       adapter that does not echo its own frames shows none).
@@ -185,6 +186,9 @@ class Diagnostics:
             level, message = OK, drive.state
             if drive.halted:
                 message += ', halted'
+        missed = self._gateway.drives.missed_set_point(node_id)
+        if missed and level == OK:
+            level, message = WARN, f'{message}; the last PP set-point streamed was missed'
         return _status(level, f'{self._prefix}: drive {node_id}', message,
                        f'canopen node {node_id} on {self._bus_id}', {
                            'Joint': self._joints[node_id].name,
@@ -196,6 +200,7 @@ class Diagnostics:
                            'Halted': 'yes' if drive.halted else 'no',
                            'Needs enable': 'yes' if drive.needs_enable else 'no',
                            'Halted by the command timeout': timeouts,
+                           'Last PP set-point streamed': missed or 'reached (or none yet)',
                            'Position (device units)': drive.position,
                        })
 

@@ -11,7 +11,7 @@ runs per drive: a new command, move or set-point replaces the one running, which
 import asyncio
 import contextlib
 import contextvars
-from typing import Callable, Dict, Optional
+from typing import Callable, Dict, Optional, Tuple
 
 from . import cia402
 from .arrival import (
@@ -97,7 +97,8 @@ class DriveCommands:
         """Take ``position`` as the next PP set-point (on the loop); the latest one wins."""
         self._set_points[drive.node_id] = position
         if self._tasks.get(drive.node_id) in self._streams:
-            return  # the running stream takes it next
+            self._service.wake(drive)  # the running stream takes it next, even waiting
+            return
         stream = asyncio.ensure_future(self._own(drive, lambda: self._stream(drive), None,
                                                  reads, enabled=True))
         self._streams.add(stream)
@@ -452,15 +453,25 @@ class DriveCommands:
             if on_feedback is not None:
                 on_feedback(status)
             if status.target_reached:
-                # The TPDO with the position may lag the statusword's: the answer reads it.
-                await self._read_position(drive)
-                here = self._service.status(drive.node_id).position
-                if abs(here - wanted) > window:
-                    read = await asyncio.wrap_future(drive.objects.read(
-                        [cia402.TARGET_POSITION], SEND_TIMEOUT))
-                    raise DriveFailed(missed(drive.node_id, wanted, here, window,
-                                             read.get(cia402.TARGET_POSITION)))
+                here, why = await self._arrival(drive, wanted, window)
+                if why:
+                    raise DriveFailed(why)
                 return f'node {drive.node_id} reached position {here} (drive units)'
+
+    async def _arrival(self, drive, wanted: int, window: int) -> Tuple[int, str]:
+        """Return where a drive showing target reached stands, and why that misses ``wanted``.
+
+        '' when it stands within ``window``; else the miss, with the set-point it holds.
+        """
+        # The TPDO with the position may lag the statusword's: the position is read.
+        await self._read_position(drive)
+        here = self._service.status(drive.node_id).position
+        if abs(here - wanted) <= window:
+            return here, ''
+        read = await asyncio.wrap_future(drive.objects.read([cia402.TARGET_POSITION],
+                                                            SEND_TIMEOUT))
+        return here, missed(drive.node_id, wanted, here, window,
+                            read.get(cia402.TARGET_POSITION))
 
     async def _standstill(self, drive, just_halted: bool = True) -> None:
         await wait_for_standstill(self._service, drive, self._until, SEND_TIMEOUT, just_halted)
@@ -470,10 +481,27 @@ class DriveCommands:
                                                               SEND_TIMEOUT))
 
     async def _stream(self, drive) -> str:
+        """Hand the drive each set-point given; then check it arrived at the last one.
+
+        Like a move, the last set-point counts as reached only when the drive shows target
+        reached for it within its position window; a miss is logged and shown in
+        ``/diagnostics`` (nobody waits for an answer of a stream). A set-point given
+        meanwhile is taken at once, and the check is then the new one's.
+        """
         await self._change_to_pp(drive)
-        while drive.node_id in self._set_points:
-            await self._new_set_point(drive, self._set_points.pop(drive.node_id))
-        return 'set-points taken'
+        node_id = drive.node_id
+        while True:
+            while node_id in self._set_points:
+                position = self._set_points.pop(node_id)
+                mark = await self._new_set_point(drive, position)
+            await self._until(drive, lambda s, m=mark: node_id in self._set_points
+                              or (drive.updates > m and s.target_reached))
+            if node_id in self._set_points:
+                continue
+            here, why = await self._arrival(drive, position, await position_window(
+                drive, SEND_TIMEOUT))
+            self._service.set_missed_set_point(drive, why)
+            return why or f'set-points taken; node {node_id} reached {here} (drive units)'
 
     async def _change_to_pp(self, drive) -> None:
         if self._service.status(drive.node_id).mode != cia402.PROFILE_POSITION:

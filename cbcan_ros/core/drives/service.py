@@ -138,6 +138,14 @@ class DriveService:
         with self._lock:
             return self._drives[node_id].timeouts
 
+    def missed_set_point(self, node_id: int) -> str:
+        """Return why the last set-point of drive ``node_id``'s last PP stream was missed.
+
+        '' when it was reached (or no stream ended yet).
+        """
+        with self._lock:
+            return self._drives[node_id].missed_set_point
+
     def start(self) -> None:
         """Listen to the drives' heartbeats and start the feedback cycle."""
         for node_id in self._drives:
@@ -300,6 +308,18 @@ class DriveService:
         """Call ``wake()`` on the drives' loop at the next feedback or loss of ``drive``."""
         with self._lock:
             drive.waiters.append(wake)
+
+    def wake(self, drive: DriveRecord) -> None:
+        """Wake what waits on ``drive`` (``when_updated``) as its next feedback would."""
+        self._wake(drive)
+
+    def set_missed_set_point(self, drive: DriveRecord, why: str) -> None:
+        """Record why the last set-point of a PP stream was missed ('' reached); log a miss."""
+        with self._lock:
+            drive.missed_set_point = why
+        if why:
+            LOGGER.warning('drive %d: the last set-point of a stream of PP targets was not '
+                           'reached: %s', drive.node_id, why)
 
     def request_feedback(self, drive: DriveRecord) -> None:
         """Read by SDO at once what no TPDO brings (after an SDO controlword, say)."""

@@ -102,6 +102,8 @@ class DriveRecord:
     # What TPDOs brought at that read: (object, mapping read it came by).
     polled_mapped: Set[Tuple[int, int]] = field(default_factory=set)
     timeouts: int = 0
+    # Why the last set-point of the last stream of PP set-points was not reached, or ''.
+    missed_set_point: str = ''
     emcy_code: int = 0  # the error code of the last EMCY
     lost_powered: bool = False  # its heartbeat stopped while its power stage was on
     position_window: Optional[int] = None  # 0x6067 in drive units, once read (arrival)
