@@ -52,9 +52,12 @@ HOMING_TIMEOUT = 60.0
 MOVE_TIMEOUT = 60.0
 # A drive's initial read that failed is tried again on a later heartbeat, at most this often.
 REREAD_INTERVAL = 1.0
-# How long a stream of targets is kept up each SYNC cycle after its last target when the
-# command timeout is off (0): a short pause of the caller, not for ever.
-STREAM_WITHOUT_TIMEOUT = 0.5
+# A stream of targets is kept up for at most this many SYNC cycles after its last target:
+# a controller late by a cycle or two still has an RPDO each cycle, but every frame kept up
+# carries the controlword that enabled the drive, which a drive that stopped by itself
+# (quick stop options 5..8) takes as transition 16 and runs again. A longer pause sends
+# nothing: the drive holds its last target, and the command timeout halts it.
+STREAM_KEPT_CYCLES = 3
 
 
 class DriveService:
@@ -71,6 +74,7 @@ class DriveService:
                  bus_down: Callable[[], Optional[str]] = lambda: None,
                  beat_now: Callable[[], None] = lambda: None):
         self.settings, self._network, self._monitor, self.sync = settings, network, monitor, sync
+        self._pdo = pdo
         self._sdo_batch, self._beat_now = sdo_batch, beat_now
         self._bus_down = bus_down
         self._lock = threading.RLock()
@@ -253,10 +257,10 @@ class DriveService:
                 self._runner.call_soon(lambda: self._commands.set_point(drive, round(value),
                                                                         reads))
                 return DriveResult(True, 'set-point handed to the drive', status)
-            # A target alone is one of a stream, which the PDO service keeps up each cycle
-            # for as long as the command timeout waits for the next one.
+            # A target alone is one of a stream, which the PDO service keeps up for a few
+            # SYNC cycles the caller leaves without one (a late cycle, not a pause).
             stream = (0.0 if cia402.CONTROLWORD in values
-                      else self.settings.command_timeout or STREAM_WITHOUT_TIMEOUT)
+                      else STREAM_KEPT_CYCLES * self.sync.period)
             sent = drive.objects.write(values, self.settings.feedback_period * 10 or 0.5,
                                        stream)
         sent.add_done_callback(lambda done: self._log_failed_target(node_id, done))
@@ -409,6 +413,7 @@ class DriveService:
                 if drive.heard and self._monitor.status(drive.node_id).state == NOT_DETECTED:
                     drive.lost_powered = safety.powered(drive)
                     drive.heard = False
+                    self._pdo.end_streams(drive.node_id)
                     drive.halted_by = ''
                     drive.status = DriveStatus(drive.node_id,
                                                supported_modes=drive.status.supported_modes,
@@ -444,6 +449,11 @@ class DriveService:
                 return
             told = drive.ready == drive.read_wanted  # else told once the re-read is done
             new = updated(old, values, stamp, drive.emcy_code)
+            if new.state != old.state and new.state != cia402.OPERATION_ENABLED:
+                # A frame kept up each cycle carries the controlword that enabled it: a drive
+                # that stopped by itself (quick stop options 5..8) would take it as transition
+                # 16 and run again. Only a command enables it now.
+                self._pdo.end_streams(drive.node_id)
             drive.status = new
             drive.count(values)
             changed = old.told != new.told

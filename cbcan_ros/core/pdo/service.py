@@ -289,6 +289,11 @@ class PdoService:
                 self._follow_stream((mapping.node_id, mapping.number), seconds)
             return resolved(self._send(mapping, frame))
 
+    def end_streams(self, node_id: int) -> None:
+        """Repeat no frame of ``node_id`` any more (its drive left the state streams are for)."""
+        with self._lock:
+            self._follow_stream((node_id, 0), 0.0)
+
     def _follow_stream(self, key: Tuple[int, int], seconds: float) -> None:
         """Start, prolong (``seconds``) or end (0) the streams of a device (lock held)."""
         if not seconds:
