@@ -66,7 +66,7 @@ class DriveCommands:
         self._tokens: Dict[asyncio.Task, object] = {}  # what names a move to its cancel
         self._halt_when_cancelled: set = set()
         self._set_points: Dict[int, int] = {}
-        self._streams: set = set()  # the tasks streaming set-points
+        self._streams: Dict[int, asyncio.Task] = {}  # by drive: its last set-point stream
 
     async def run(self, drive, command: str, mode: int, timeout: float,
                   reads: Optional[int]):
@@ -96,13 +96,13 @@ class DriveCommands:
     def set_point(self, drive, position: int, reads: int) -> None:
         """Take ``position`` as the next PP set-point (on the loop); the latest one wins."""
         self._set_points[drive.node_id] = position
-        if self._tasks.get(drive.node_id) in self._streams:
-            self._service.wake(drive)  # the running stream takes it next, even waiting
+        stream = self._streams.get(drive.node_id)
+        if stream is not None and not stream.done() and not stream.cancelling():
+            # Running or about to start (not replaced): it takes the newest, even waiting.
+            self._service.wake(drive)
             return
-        stream = asyncio.ensure_future(self._own(drive, lambda: self._stream(drive), None,
-                                                 reads, enabled=True))
-        self._streams.add(stream)
-        stream.add_done_callback(self._streams.discard)
+        self._streams[drive.node_id] = asyncio.ensure_future(self._own(
+            drive, lambda: self._stream(drive), None, reads, enabled=True))
 
     def cancel(self, drive, reason: str, halt: bool = False, token: object = None) -> None:
         """End the sequence running on ``drive`` (on the loop), answered ``reason``.
@@ -490,6 +490,8 @@ class DriveCommands:
         """
         await self._change_to_pp(drive)
         node_id = drive.node_id
+        if node_id not in self._set_points:
+            return 'no set-point left to take'  # a stream replaced before it began
         while True:
             while node_id in self._set_points:
                 position = self._set_points.pop(node_id)

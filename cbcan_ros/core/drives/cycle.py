@@ -6,9 +6,10 @@ on absolute deadlines, so lateness never adds up; a beat missed on a loaded mach
 skipped, not caught up in a burst.
 
 While the gateway produces SYNC, the beats follow it: one a SYNC cycle, as soon as every
-synchronous TPDO the drives answer that SYNC with is in (``took``), at the latest half a
-period after the SYNC. So ``~/joint_states`` carries each cycle's feedback once, early enough
-for a controller's answer to reach the drives before the next SYNC.
+synchronous TPDO the drives answer that SYNC with is in (``took``); without them, half a
+period after the SYNC (or after the moment they came the cycle before). So
+``~/joint_states`` carries each cycle's feedback once, early enough for a controller's answer
+to reach the drives before the next SYNC.
 """
 
 from concurrent.futures import Future
@@ -137,7 +138,9 @@ class FeedbackCycle:
                     self._wake.wait(timeout)
                 if self._stopped:
                     return
+                all_in = self._all_in()
                 self._beaten = self._cycle_end
+            beat_at = time.monotonic()
             for step in [self._tick, *self._listeners]:
                 try:
                     step()
@@ -147,11 +150,19 @@ class FeedbackCycle:
                         failures.add(kind)
                         LOGGER.error('the drive cycle failed (%s: %s); later failures of '
                                      'this kind are not logged', kind, error)
-            due = self._next_due(due)
+            due = self._next_due(due, beat_at if all_in else None)
 
-    def _next_due(self, due: float) -> float:
-        """Return when the next beat is due at the latest."""
+    def _next_due(self, due: float, all_in_at: Optional[float]) -> float:
+        """Return when the next beat is due at the latest.
+
+        ``all_in_at``: the beat just made came with the cycle's last TPDO, at that time. The
+        next cycle's come a period later, wherever in the cycle the drives answer (SYNCs that
+        leave late or early against the schedule): only half a period after that is a beat
+        due without them.
+        """
         now = time.monotonic()
+        if all_in_at is not None:
+            return all_in_at + (1 + LATEST_BEAT) * self._period
         following = self._sync_point(LATEST_BEAT)
         if following is not None:
             # The latest point of this cycle, unless the beat ran early in it: then the next.

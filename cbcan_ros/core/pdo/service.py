@@ -176,6 +176,7 @@ class PdoService:
         if status.up:
             return
         with self._lock:
+            self._streams.clear()  # a stream resumes with its caller's next target
             for device in self._devices.values():
                 device.heard = False
 
@@ -336,9 +337,12 @@ class PdoService:
         SYNC goes out carrying them, and while SYNC is produced a synchronous RPDO's frame is
         sent again at once, since the device keeps the last one it received until the next
         SYNC applies it; at shutdown too (the drives' stops are written after this service
-        stopped, SYNC goes on until after them). ``resend`` False: only frames still to be
-        sent carry them.
+        stopped, SYNC goes on until after them). ``resend`` False (the write's own frame
+        waits for the next SYNC): frames still to be sent carry them, and a frame the device
+        got since the last SYNC (a stream's, sent at once) is sent again carrying them right
+        after the write's frame, so no RPDO applied at the same SYNC undoes it.
         """
+        later = []  # frames the device holds for the next SYNC: sent again after it
         with self._frames:  # a SYNC flush of the frame before these values cannot come last
             again = []
             with self._lock:
@@ -357,9 +361,38 @@ class PdoService:
                                                           mapped)
                     except ValueError:  # mapped at another size: no frame of ours has them
                         continue
-                    if resend and mapping.synchronous and self._sync.producing:
+                    if not (mapping.synchronous and self._sync.producing):
+                        continue
+                    if resend:
                         again.append((mapping, device.last_sent[number]))
+                    elif self._waits_for_sync(device, number):
+                        later.append((number, device.life, mapping))
             for mapping, frame in again:
+                self._send(mapping, frame, stopping=True)
+        for number, life, mapping in later:
+            self._sync.after_next_sync(lambda n=number, lf=life, m=mapping: self._send_again(
+                node_id, n, lf, m))
+
+    def _waits_for_sync(self, device: _Device, number: int) -> bool:
+        """Return whether the device holds a frame of the RPDO it has not applied yet.
+
+        A frame sent after the last SYNC (a stream's, sent at once) comes into force at the
+        next one, with the controlword from before the values carried. One waiting for the
+        SYNC in this service goes out carrying them anyway. Called with the lock held.
+        """
+        following = self._sync.next_point(0.0)
+        return (following is not None and (device.node_id, number) not in self._pending_sync
+                and device.sent_at.get(number, 0.0) >= following - self._sync.period)
+
+    def _send_again(self, node_id: int, number: int, life: int, mapping: PdoMapping) -> None:
+        """Send RPDO ``number``'s frame again after a SYNC (``carry``), unless it changed."""
+        with self._frames:
+            with self._lock:
+                device = self._devices[node_id]
+                frame = device.last_sent.get(number)
+                if device.life != life or device.rpdos.get(number) is not mapping:
+                    frame = None  # booted or read again since: the frame is gone
+            if frame is not None:
                 self._send(mapping, frame, stopping=True)
 
     def _check(self, node_id: int, number: int, values: Sequence[EntryValue], data: bytes):

@@ -176,13 +176,16 @@ class SyncProducer:
                     else '')
 
     def _start_task(self) -> bool:
+        # Taken before: python-can's thread and the kernel's broadcast manager send the first
+        # SYNC as they start, so each SYNC goes out just after its grid point, never before.
+        grid_start = time.monotonic()
         try:
             self._task = self._supervisor.send_periodic(sync_frames(self.counter_overflow),
                                                         self.period)
         except BusDown as error:
             LOGGER.warning('SYNC could not be started: %s', error)
             return False
-        self._grid_start = time.monotonic()
+        self._grid_start = grid_start
         self._starts += 1
         return True
 
