@@ -25,6 +25,8 @@ asks of a client):
 5. Frames shorter than the 8 bytes CiA 301 prescribes for SDO are ignored (canopen let
    ``struct.error`` escape for them), and aborts name the transfer's index and subindex.
 6. A transfer can be cancelled from another thread (bus down, shutdown); it ends at once.
+   A long one (a program image) may renew its deadline as the device answers
+   (:meth:`StrictSdoClient.renew`), so that only a device that stops answering ends it.
 
 The transfer streams:
 
@@ -151,6 +153,11 @@ class StrictSdoClient(SdoClient):
         if send:
             self._send_abort(code)
         return ended
+
+    def renew(self, deadline: float) -> None:
+        """Move the running transfer's deadline to ``deadline`` (a long transfer progressing)."""
+        with self._lock:
+            self._deadline = deadline
 
     def cancel(self, reason: str, abort_code: Optional[int] = None) -> None:
         """End the running transfer at once; send ``abort_code`` if it had started."""
