@@ -14,6 +14,7 @@ from rclpy.parameter import Parameter
 
 from ..core import eds
 from ..core.gateway import GatewayConfig
+from ..core.program.download import ProgramSettings
 from ..core.sdo.write_protection import RULE_FORMAT, WriteProtection
 from ..simulation.simulated_drives import LAYOUTS
 from . import boot_parameters, drive_parameters, raw_parameters
@@ -161,6 +162,19 @@ class NodeParameters:
                       additional_constraints=checks.NODE_IDS)
         drive_parameters.declare(self._declare, self._given_ids('drives.nodes'))
         raw_parameters.declare(self._declare)
+        self._declare('program_download.flash_timeout', 30.0,
+                      'Seconds a program download (~/program_download) waits for the flash: '
+                      'for the clear command (0x1F51 = 3) and for 0x1F57 to show the flash '
+                      'no longer busy after clearing and after the image',
+                      floating_point_range=_between(0.1, 60.0))
+        self._declare('program_download.start_timeout', 10.0,
+                      'Seconds a program download waits, after starting the new program '
+                      '(0x1F51 = 1), for the boot-up message of the device',
+                      floating_point_range=_between(0.1, 600.0))
+        self._declare('program_download.at_boot', False,
+                      "Let a boot download a device's software_file of the bus description "
+                      '(bus_config) when its 0x1F56 differs from software_version; false: '
+                      'such a device fails its boot with CiA 302-2 error H')
         self._declare('simulation.devices', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) of simulated CANopen devices to put on the bus, for '
                       'trying the gateway without hardware; empty on a real bus',
@@ -256,7 +270,11 @@ class NodeParameters:
             heartbeat_period=value('heartbeat.period'),
             drives=drives,
             raw=raw_parameters.settings(self._strings),
-            bus_description=self.bus_file.description)
+            bus_description=self.bus_file.description,
+            program=ProgramSettings(answer_timeout=value('sdo.timeout'),
+                                    flash_timeout=value('program_download.flash_timeout'),
+                                    start_timeout=value('program_download.start_timeout'),
+                                    at_boot=value('program_download.at_boot')))
 
     def joints(self) -> Dict[int, drive_parameters.Joint]:
         """Return every drive's joint (name, scales); raise ConfigurationError when wrong."""

@@ -54,6 +54,7 @@ from .diagnostics import Diagnostics
 from .drives import DriveTopics, fill_command
 from .emcy import EmcyPublisher
 from .pdo import check_request, entry_values, PdoTopics
+from .program import ProgramAction
 from .publish_on_change import PublishOnChange
 from .raw_frames import RawFrameTopics
 from .rclpy_gaps import drain
@@ -189,6 +190,8 @@ class GatewayInterface:
                                    lambda: None if self.active else INACTIVE)
         self._boots = BootTopics(node, self.gateway.boot,
                                  lambda: None if self.active else INACTIVE)
+        self._program = ProgramAction(node, self.gateway.program,
+                                      lambda: None if self.active else INACTIVE)
         # Calls must overlap: a slow device never holds up the others or the state topic.
         options = dict(qos_profile=SERVICE_QOS, callback_group=ReentrantCallbackGroup())
         self._deferred = [
@@ -224,6 +227,7 @@ class GatewayInterface:
         self._states_lock = threading.Lock()
         self._states_changed = PublishOnChange(self._publish_states, 'node states')
         self.gateway.monitor.add_listener(self._states_changed.changed)
+        self.gateway.program.add_listener(self._states_changed.changed)
         self._pdo_topics = PdoTopics(node, self.gateway.pdo, self._on_tpdo_message,
                                      lambda: self.active)
         self._diagnostics = Diagnostics(node, self.gateway, parameters.joints())
@@ -281,6 +285,7 @@ class GatewayInterface:
             self._shutting_down = True
             self._answered_before_shutdown = self._calls.answered
         self.gateway.stop()
+        self._program.wait_until_answered(ANSWER_GRACE)
         self._calls.wait_until_idle(ANSWER_GRACE)
         self._mailbox_loop.close()
 
@@ -301,6 +306,7 @@ class GatewayInterface:
         node.destroy_publisher(publisher)
         self._emcy.destroy()
         self._drives.destroy()
+        self._program.destroy()
         self._boots.close()
         self._pdo_topics.destroy()
         self._raw.destroy()
@@ -470,9 +476,11 @@ class GatewayInterface:
             if not self.active or self._states_publisher is None:
                 return
             message = NodeStates(stamp=self._node.get_clock().now().to_msg())
+            programming = self.gateway.program.programming()
             message.nodes = [
                 NodeState(node_id=status.node_id, state=status.state,
                           state_name=status.state_name,
-                          last_seen=_time(status.last_seen) if status.last_seen else Time())
+                          last_seen=_time(status.last_seen) if status.last_seen else Time(),
+                          programming=status.node_id in programming)
                 for status in self.gateway.monitor.statuses()]
             self._states_publisher.publish(message)

@@ -1,0 +1,282 @@
+"""Program download (CiA 302-3): ``~/program_download`` against a simulated bootloader.
+
+The device is durand's (an independent stack) with a bootloader (``BootloaderDevice``): it
+stores the image as it arrives, flashes for a while, reports 0x1F57, resets into the new
+program and identifies it by the CRC-32 of the image (0x1F56). What the tests read is what
+the device holds and the frames on the bus. Where a test must act while the image is on its
+way, it holds the download at a segment boundary (``Hold``) until the gateway tells it to
+end: no race with the transfer's speed, no sleeps.
+"""
+
+import os
+import struct
+import threading
+import zlib
+
+from action_msgs.msg import GoalStatus
+import pytest
+from rclpy.action import ActionClient
+from test_boot_configuration import Frames
+
+from cbcan_ros.action import ProgramDownload
+from cbcan_ros.simulation.durand.bootloader import BootloaderDevice
+from cbcan_ros.simulation.durand.device import DurandDevice
+
+from conftest import Harness, new_channel, wait_for_future, wait_until
+
+NODE = 12
+OTHER = 13
+WAIT = 20.0
+SMALL = 20 * 1024  # bytes: images of a few round trips of blocks
+NOT_STORED = 0x08000020
+LOCAL_CONTROL = 0x08000021
+PHASES = ['STOPPING', 'CLEARING', 'DOWNLOADING', 'FLASHING', 'STARTING', 'CHECKING']
+
+
+class Rig:
+    """A gateway, a device with a bootloader, a plain device, and an action client."""
+
+    def __init__(self, start_durand, tmp_path, device=None, **parameters):
+        channel = new_channel()
+        self.tmp_path = tmp_path
+        self.frames = Frames(channel)
+        self.device = start_durand(NODE, kind=BootloaderDevice, channel=channel,
+                                   **(device or {}))
+        self.other = start_durand(OTHER, kind=DurandDevice, channel=channel)
+        self.gateway = Harness({'can.channel': channel, 'simulation.devices': None,
+                                'nodes': [NODE, OTHER], **parameters})
+        self.core = self.gateway.node.gateway
+        self.action = ActionClient(self.gateway.client_node, ProgramDownload,
+                                   '/cbcan/program_download')
+        assert self.action.wait_for_server(timeout_sec=WAIT)
+        wait_until(lambda: all(self.core.monitor.status(n).detected for n in (NODE, OTHER)),
+                   WAIT, 'both devices heard')
+
+    def image(self, size: int = SMALL, name: str = 'firmware.bin') -> str:
+        """Write an image of ``size`` random bytes; return its path."""
+        path = self.tmp_path / name
+        path.write_bytes(os.urandom(size))
+        return str(path)
+
+    def send(self, **fields):
+        """Send a goal; return (its handle, the feedback list filled as it arrives)."""
+        feedback = []
+        goal = wait_for_future(self.action.send_goal_async(
+            ProgramDownload.Goal(**fields),
+            feedback_callback=lambda message: feedback.append(message.feedback)), WAIT)
+        assert goal.accepted
+        return goal, feedback
+
+    def result(self, goal):
+        """Return (the result, its status) of a goal."""
+        answer = wait_for_future(goal.get_result_async(), WAIT)
+        return answer.result, answer.status
+
+    def run(self, **fields):
+        """Run a goal to its end; return (result, status, feedback)."""
+        goal, feedback = self.send(**fields)
+        result, status = self.result(goal)
+        return result, status, feedback
+
+    def close(self) -> None:
+        """Stop the gateway and the frame reader."""
+        self.action.destroy()
+        self.gateway.close()
+        self.frames.close()
+
+
+class Hold:
+    """Holds the gateway's download of the image at a segment boundary past ``at`` bytes.
+
+    Once there, ``reached`` is set, and the download goes on only when the gateway tells it
+    to end (cancel, shutdown), or after :meth:`release`.
+    """
+
+    def __init__(self, rig: Rig, at: int):
+        self.reached = threading.Event()
+        self._released = threading.Event()
+        service = rig.core.program
+        stream = service._sdo_stream
+
+        def held(access, answer_within, written):
+            def each(position: int):
+                reason = written(position)
+                if position >= at and not self.reached.is_set():
+                    self.reached.set()
+                    reason = wait_until(lambda: written(position) or self._released.is_set(),
+                                        WAIT, 'the download told to end, or released')
+                    reason = reason if isinstance(reason, str) else None
+                return reason
+            return stream(access, answer_within, each)
+        service._sdo_stream = held
+
+    def release(self) -> None:
+        """Let the download go on."""
+        self._released.set()
+
+
+@pytest.fixture
+def rig(ros_context, start_durand, tmp_path):
+    """Return ``rig(device={options}, **parameters)``, closed after the test."""
+    made = []
+
+    def factory(**options):
+        made.append(Rig(start_durand, tmp_path, **options))
+        return made[-1]
+    yield factory
+    for each in made:
+        each.close()
+
+
+def sdo_writes(frames, node_id: int):
+    """Return the SDO download and block download frames sent to a node (no block running)."""
+    return [frame for frame in frames
+            if frame.arbitration_id == 0x600 + node_id and frame.data[0] >> 5 in (1, 6)]
+
+
+def aborts(frames, node_id: int):
+    """Return the abort codes the gateway sent to a node."""
+    return [struct.unpack_from('<I', frame.data, 4)[0] for frame in frames
+            if frame.arbitration_id == 0x600 + node_id and frame.data[0] == 0x80]
+
+
+def test_an_image_is_stored_byte_for_byte_started_and_identified(rig):
+    setup = rig()
+    path = setup.image()
+    expected = zlib.crc32(open(path, 'rb').read())
+    result, status, feedback = setup.run(node_id=NODE, file=path,
+                                         expected_software_id=expected)
+    assert result.success and status == GoalStatus.STATUS_SUCCEEDED, result.message
+    assert bytes(setup.device.image) == open(path, 'rb').read()
+    assert result.software_id == expected and result.abort_code == 0, result
+    assert setup.device.starts == 1 and setup.device.program_running
+    assert 'started, software id' in result.message, result.message
+    phases = [message.phase for message in feedback]
+    assert [p for n, p in enumerate(phases) if p not in phases[:n]] == PHASES, phases
+    downloading = [m for m in feedback if m.phase == 'DOWNLOADING']
+    assert downloading[-1].bytes_sent == downloading[-1].bytes_total == SMALL
+    assert downloading[-1].bytes_per_second > 0
+
+
+def test_without_start_the_program_is_written_and_left_stopped(rig):
+    setup = rig()
+    path = setup.image(300)
+    result, status, _ = setup.run(node_id=NODE, file=path, start=False)
+    assert result.success, result.message
+    assert bytes(setup.device.image) == open(path, 'rb').read()
+    assert setup.device.starts == 0 and not setup.device.program_running
+    assert 'not started (start: false)' in result.message, result.message
+
+
+@pytest.mark.parametrize('goal, named', [
+    (dict(file='missing.bin'), 'cannot be read'),
+    (dict(file='empty.bin'), 'is empty'),
+    (dict(file=''), 'file is empty'),
+    (dict(program=0), 'program 0 is out of range'),
+    (dict(node_id=0), 'node_id 0 is out of range'),
+    (dict(node_id=40), 'not heard'),
+    (dict(node_id=OTHER), 'has no 0x1F51:1'),
+])
+def test_bad_goals_are_refused_before_anything_is_written(rig, goal, named):
+    setup = rig()
+    (setup.tmp_path / 'empty.bin').write_bytes(b'')
+    fields = {'node_id': NODE, 'file': setup.image(100), **goal}
+    if fields['file'] and not fields['file'].startswith('/'):
+        fields['file'] = str(setup.tmp_path / fields['file'])
+    before = bytes(setup.device.image)
+    result, status, feedback = setup.run(**fields)
+    assert not result.success and status == GoalStatus.STATUS_ABORTED
+    assert named in result.message and 'nothing was sent' in result.message, result.message
+    assert not feedback, 'a refused goal has no phase'
+    assert bytes(setup.device.image) == before and setup.device.program_running
+    assert not sdo_writes(setup.frames.snapshot(), goal.get('node_id', NODE))
+
+
+def test_a_device_that_aborts_mid_image_fails_the_download_with_its_abort_code(rig):
+    setup = rig(device=dict(abort_at=5000))
+    result, status, _ = setup.run(node_id=NODE, file=setup.image())
+    assert not result.success and status == GoalStatus.STATUS_ABORTED
+    assert result.abort_code == NOT_STORED, result
+    assert result.message.startswith('DOWNLOADING failed'), result.message
+    assert 'cleared and partly written, not started: download again' in result.message
+    assert not setup.device.program_running and setup.device.starts == 0
+
+
+def test_a_flash_error_fails_the_download_with_the_flash_status(rig):
+    setup = rig(device=dict(flash_error=5))
+    result, _, _ = setup.run(node_id=NODE, file=setup.image())
+    assert not result.success
+    assert result.flash_status == 5 << 1, result
+    assert result.message.startswith('FLASHING failed'), result.message
+    assert 'flash write error' in result.message, result.message
+    assert setup.device.starts == 0
+
+
+def test_a_device_that_never_comes_back_fails_after_the_start_timeout(rig):
+    setup = rig(device=dict(comes_back=False), **{'program_download.start_timeout': 1.0})
+    result, _, _ = setup.run(node_id=NODE, file=setup.image())
+    assert not result.success
+    assert result.message.startswith('STARTING failed: no boot-up message within 1 s'), \
+        result.message
+    assert 'its start was not seen' in result.message, result.message
+    assert setup.device.starts == 1
+
+
+def test_another_software_id_than_expected_fails_the_check(rig):
+    setup = rig()
+    result, _, _ = setup.run(node_id=NODE, file=setup.image(), expected_software_id=7)
+    assert not result.success
+    assert result.message.startswith('CHECKING failed'), result.message
+    assert result.software_id == setup.device.software_id != 7
+
+
+def test_a_cancel_aborts_between_segments_and_says_what_the_device_holds(rig):
+    setup = rig()
+    hold = Hold(setup, 3000)
+    goal, _ = setup.send(node_id=NODE, file=setup.image())
+    assert hold.reached.wait(WAIT)
+    wait_for_future(goal.cancel_goal_async(), WAIT)
+    result, status = setup.result(goal)
+    assert not result.success and status == GoalStatus.STATUS_CANCELED, result.message
+    assert 'cancelled by the caller' in result.message, result.message
+    assert 'partly written, not started: download again' in result.message
+    assert result.abort_code == LOCAL_CONTROL
+    wait_until(lambda: LOCAL_CONTROL in aborts(setup.frames.snapshot(), NODE), WAIT,
+               'the abort on the bus')
+    assert 3000 <= len(setup.device.image) < SMALL
+    assert not setup.device.program_running
+
+
+def test_while_a_download_runs_other_devices_are_served_and_it_shows_as_programming(rig):
+    setup = rig()
+    hold = Hold(setup, 3000)
+    goal, _ = setup.send(node_id=NODE, file=setup.image())
+    assert hold.reached.wait(WAIT)
+    read = setup.gateway.call('sdo_read', node_id=OTHER, index=0x1000, subindex=0)
+    assert read.success, read.message
+    second, _, _ = setup.run(node_id=NODE, file=setup.image(name='other.bin'))
+    assert not second.success and 'being programmed already' in second.message
+    wait_until(lambda: any(n.node_id == NODE and n.programming
+                           for n in setup.gateway.states[-1].nodes), WAIT,
+               'node states showing the device being programmed')
+    hold.release()
+    result, _ = setup.result(goal)
+    assert result.success, result.message
+    wait_until(lambda: not any(n.programming for n in setup.gateway.states[-1].nodes), WAIT,
+               'node states showing the download over')
+
+
+def test_shutdown_during_a_download_aborts_it_and_answers_the_goal(rig):
+    setup = rig()
+    hold = Hold(setup, 3000)
+    goal, _ = setup.send(node_id=NODE, file=setup.image())
+    assert hold.reached.wait(WAIT)
+    stopping = threading.Thread(target=setup.gateway.node.shut_down_gateway)
+    stopping.start()
+    result, _ = setup.result(goal)
+    stopping.join(WAIT)
+    assert not result.success
+    assert 'the gateway is shutting down' in result.message, result.message
+    assert 'partly written' in result.message, result.message
+    assert aborts(setup.frames.snapshot(), NODE), 'no abort on the bus'
+    assert setup.device.starts == 0
