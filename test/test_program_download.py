@@ -17,8 +17,13 @@ from action_msgs.msg import GoalStatus
 import pytest
 from rclpy.action import ActionClient
 from test_boot_configuration import Frames
+from test_drives import CSV
+from test_drives import NODE as DRIVE
+from test_drives import Rig as DriveRig
 
 from cbcan_ros.action import ProgramDownload
+from cbcan_ros.ros.cli import build_parser, Client, run
+from cbcan_ros.ros.client import GatewayClient, RequestFailed
 from cbcan_ros.simulation.durand.bootloader import BootloaderDevice
 from cbcan_ros.simulation.durand.device import DurandDevice
 
@@ -280,3 +285,57 @@ def test_shutdown_during_a_download_aborts_it_and_answers_the_goal(rig):
     assert 'partly written' in result.message, result.message
     assert aborts(setup.frames.snapshot(), NODE), 'no abort on the bus'
     assert setup.device.starts == 0
+
+
+def test_an_enabled_drive_is_refused_before_anything_is_written(ros_context, start_durand,
+                                                                 tmp_path):
+    axis = DriveRig(start_durand)
+    try:
+        axis.enable(CSV)
+        action = ActionClient(axis.gateway.client_node, ProgramDownload,
+                              '/cbcan/program_download')
+        assert action.wait_for_server(timeout_sec=WAIT)
+        path = tmp_path / 'drive.bin'
+        path.write_bytes(b'new drive firmware')
+        goal = wait_for_future(action.send_goal_async(
+            ProgramDownload.Goal(node_id=DRIVE, file=str(path))), WAIT)
+        result = wait_for_future(goal.get_result_async(), WAIT).result
+        assert not result.success
+        assert 'OPERATION_ENABLED: disable it first' in result.message, result.message
+        assert axis.drive.drive_state == 'OPERATION_ENABLED'
+        action.destroy()
+    finally:
+        axis.close()
+
+
+def test_the_cli_shows_each_phase_and_the_bar_and_prints_the_software_id(rig, capsys):
+    setup = rig()
+    path = setup.image()
+    client = Client('/cbcan', WAIT)
+    try:
+        status = run(client, build_parser().parse_args(
+            ['program-download', str(NODE), path, '--expect',
+             f'0x{zlib.crc32(open(path, "rb").read()):08X}']))
+        out, err = capsys.readouterr()
+        assert status == 0, err
+        assert out.splitlines()[0] == 'STOPPING', out
+        assert '[##############################] 100.0 %' in out, out
+        assert f'started, software id 0x{setup.device.software_id:08X}' in out, out
+        status = run(client, build_parser().parse_args(
+            ['program-download', str(NODE), path, '--expect', '7']))
+        out, err = capsys.readouterr()
+        assert status == 1 and 'error: node 12 program download: CHECKING failed' in err, err
+    finally:
+        client.close()
+
+
+def test_the_python_client_reports_progress_and_raises_on_a_refusal(rig):
+    setup = rig()
+    path = setup.image()
+    seen = []
+    with GatewayClient(setup.gateway.client_node, '/cbcan', WAIT) as gateway:
+        result = gateway.program_download(NODE, path, feedback=seen.append)
+        assert result.software_id == setup.device.software_id
+        assert seen and seen[-1].phase == 'CHECKING', seen
+        with pytest.raises(RequestFailed, match='cannot be read'):
+            gateway.program_download(NODE, path + '.missing')

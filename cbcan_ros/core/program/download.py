@@ -281,7 +281,7 @@ class ProgramDownload:
                           f'{result.message}', result.abort_code)
         self._sent = total
         elapsed = max(time.monotonic() - began, 1e-6)
-        self._transfer = f'{total} bytes in {elapsed:.2f} s ({total / elapsed / 1024:.1f} KiB/s)'
+        self._transfer = f'{total} bytes in {elapsed:.2f} s, {total / elapsed / 1024:.1f} KiB/s'
 
     def _start_program(self) -> None:
         self._begin(STARTING)
@@ -339,7 +339,7 @@ class ProgramDownload:
 
     def _done_text(self) -> str:
         kind = f' ({self._transfer})' if self._transfer else ''
-        return f'program {self._program} of node {self.node_id} written{kind}'
+        return f'program {self._program} written{kind}'
 
     def _failed(self, failure: _Failed) -> ProgramResult:
         if failure.refused:
