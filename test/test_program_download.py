@@ -16,7 +16,7 @@ import zlib
 from action_msgs.msg import GoalStatus
 import pytest
 from rclpy.action import ActionClient
-from test_boot_configuration import Frames
+from test_boot_configuration import bus_file, Frames, state_of
 from test_drives import CSV
 from test_drives import NODE as DRIVE
 from test_drives import Rig as DriveRig
@@ -339,3 +339,64 @@ def test_the_python_client_reports_progress_and_raises_on_a_refusal(rig):
         assert seen and seen[-1].phase == 'CHECKING', seen
         with pytest.raises(RequestFailed, match='cannot be read'):
             gateway.program_download(NODE, path + '.missing')
+
+
+def booted(start_durand, tmp_path, device=None, at_boot=True, plain=False):
+    """Start a gateway whose bus description gives NODE a software_file and its version.
+
+    Returns (the gateway, the device, the new image's bytes).
+    """
+    channel = new_channel()
+    image = os.urandom(SMALL)
+    (tmp_path / 'new.bin').write_bytes(image)
+    kind = DurandDevice if plain else BootloaderDevice
+    unit = start_durand(NODE, kind=kind, channel=channel, **(device or {}))
+    path = bus_file(tmp_path, f"""\
+        master:
+          node_id: 1
+          boot_timeout: 2000
+        nodes:
+          arm_io:
+            node_id: {NODE}
+            dcf: device.eds
+            software_file: new.bin
+            software_version: 0x{zlib.crc32(image):08X}
+        """)
+    gateway = Harness({'can.channel': channel, 'simulation.devices': None,
+                       'bus_config': path, 'program_download.at_boot': at_boot})
+    return gateway, unit, image
+
+
+def boot_of(gateway):
+    """Return NODE's boot state once its first boot ended."""
+    return wait_until(lambda: (state := state_of(gateway, NODE)).boots >= 1 and state, WAIT,
+                      'the boot of the device ended')
+
+
+def test_a_boot_downloads_the_software_file_when_the_version_differs(start_durand, tmp_path,
+                                                                      ros_context):
+    gateway, unit, image = booted(start_durand, tmp_path)
+    try:
+        state = boot_of(gateway)
+        assert state.state == 'BOOTED', state
+        assert 'software updated' in state.message, state.message
+        assert bytes(unit.image) == image and unit.software_id == zlib.crc32(image)
+    finally:
+        gateway.close()
+
+
+@pytest.mark.parametrize('letter, options, named', [
+    ('H', dict(at_boot=False), 'program_download.at_boot'),
+    ('G', dict(plain=True), '0x1F56:1 (software id) could not be read'),
+    ('I', dict(device=dict(abort_at=3000)), 'DOWNLOADING failed'),
+])
+def test_a_boot_that_cannot_update_the_software_fails_with_its_letter(
+        start_durand, tmp_path, ros_context, letter, options, named):
+    gateway, unit, image = booted(start_durand, tmp_path, **options)
+    try:
+        state = boot_of(gateway)
+        assert state.state == 'FAILED' and state.error_status == letter, state
+        assert named in state.message, state.message
+        assert unit.state == 127, 'a device whose boot failed is not started'
+    finally:
+        gateway.close()

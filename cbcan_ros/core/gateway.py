@@ -201,7 +201,7 @@ class Gateway:
         self._deadlines = Deadlines()
         self.boot = BootService(self.network, boots, self.sdo_batch, self.nmt_command,
                                 self.pdo, self.monitor, self._deadlines, config.sdo_timeout,
-                                self.drives.enabled)
+                                self.drives.enabled, self.sdo_stream, config.program)
         self.program = ProgramService(self.network, self.sdo_batch, self.sdo_stream,
                                       self.monitor, self.drives.enabled,
                                       config.write_protection.refuses_write, config.program)

@@ -187,7 +187,8 @@ class ProgramDownload:
         reads = [Access(self.node_id, PROGRAM_CONTROL, n), Access(self.node_id, PROGRAM_DATA, n,
                                                                    max_size=1),
                  Access(self.node_id, SOFTWARE_ID, n), Access(self.node_id, FLASH_STATUS, n)]
-        results = self._sdo(reads, self._settings.answer_timeout * len(reads))
+        # One at a time: a caller's batch may stop at the first failure, and 0x1F50 fails.
+        results = [self._sdo([read], self._settings.answer_timeout)[0] for read in reads]
         reason = self._link.ended()
         if reason:
             raise _Failed(f'{reason}; {NOTHING_SENT}', refused=True)
