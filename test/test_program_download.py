@@ -9,6 +9,7 @@ end: no race with the transfer's speed, no sleeps.
 """
 
 import os
+import signal
 import struct
 import threading
 import zlib
@@ -28,6 +29,15 @@ from cbcan_ros.simulation.durand.bootloader import BootloaderDevice
 from cbcan_ros.simulation.durand.device import DurandDevice
 
 from conftest import Harness, new_channel, wait_for_future, wait_until
+from node_process import (
+    arguments,
+    BusRecorder,
+    namespace,
+    private_bus,
+    START_TIMEOUT,
+    StateWatcher,
+    STOP_TIMEOUT,
+)
 
 NODE = 12
 OTHER = 13
@@ -35,6 +45,7 @@ WAIT = 20.0
 SMALL = 20 * 1024  # bytes: images of a few round trips of blocks
 NOT_STORED = 0x08000020
 LOCAL_CONTROL = 0x08000021
+BLOCK_ACKNOWLEDGED = b'\xa2'  # the device's answer to a block of the download
 PHASES = ['STOPPING', 'CLEARING', 'DOWNLOADING', 'FLASHING', 'STARTING', 'CHECKING']
 
 
@@ -400,3 +411,52 @@ def test_a_boot_that_cannot_update_the_software_fails_with_its_letter(
         assert unit.state == 127, 'a device whose boot failed is not started'
     finally:
         gateway.close()
+
+
+def test_sigint_during_a_download_aborts_it_answers_the_goal_and_sends_nothing_after(
+        start_node, start_durand, client_node, tmp_path):
+    # The installed node in a process of its own, as users run it; the device in this one
+    # holds its acknowledgement of a block, so the signal lands while the image is on its way.
+    group, port = private_bus()
+    device = start_durand(NODE, kind=BootloaderDevice, interface='udp_multicast',
+                          channel=group, bus_options={'port': port})
+    wait_until(lambda: device.running, WAIT, 'the device receiving')
+    holding, released = threading.Event(), threading.Event()
+    send = device._network.send
+
+    def held(cob_id: int, data: bytes) -> None:
+        if data[:1] == BLOCK_ACKNOWLEDGED and len(device.image) >= 3000 and \
+                not released.is_set():
+            holding.set()
+            released.wait(WAIT)
+        send(cob_id, data)
+    device._network.send = held
+    recorder = BusRecorder(group, port)
+    name = f'{namespace()}/cbcan'
+    gateway = start_node(arguments(name, '-p', 'can.interface:=udp_multicast',
+                                   '-p', f'can.channel:={group}', '-p', f'nodes:=[{NODE}]',
+                                   '-p', 'sdo.timeout:=10.0'), port)
+    try:
+        StateWatcher(client_node, name).wait_for({NODE: 'PRE_OPERATIONAL'}, START_TIMEOUT)
+        action = ActionClient(client_node, ProgramDownload, f'{name}/program_download')
+        assert action.wait_for_server(timeout_sec=START_TIMEOUT)
+        path = tmp_path / 'firmware.bin'
+        path.write_bytes(os.urandom(SMALL))
+        goal = wait_for_future(action.send_goal_async(
+            ProgramDownload.Goal(node_id=NODE, file=str(path))), START_TIMEOUT)
+        answer = goal.get_result_async()
+        assert holding.wait(START_TIMEOUT), gateway.output()
+        gateway.process.send_signal(signal.SIGINT)
+        assert gateway.wait(STOP_TIMEOUT) == 0, gateway.output()
+        released.set()
+        result = wait_for_future(answer, WAIT).result
+    finally:
+        released.set()
+        recorder.close()
+    assert not result.success
+    assert 'DOWNLOADING failed: the gateway is shutting down' in result.message, result.message
+    assert 'partly written, not started: download again' in result.message, result.message
+    requests = [message for _, message in recorder.frames
+                if message.arbitration_id == 0x600 + NODE]
+    assert requests[-1].data[0] == 0x80, 'the last request to the device is not the abort'
+    assert device.starts == 0

@@ -164,6 +164,7 @@ class GatewayInterface:
         self.active = active
         self._shutting_down = False
         self._answered_before_shutdown = 0
+        self._downloads_answered_before_shutdown = 0
         self._log_handler = _RosLogHandler(node.get_logger())
         core_logger = logging.getLogger(PACKAGE)
         core_logger.setLevel(logging.INFO)
@@ -284,6 +285,7 @@ class GatewayInterface:
         if not self._shutting_down:
             self._shutting_down = True
             self._answered_before_shutdown = self._calls.answered
+            self._downloads_answered_before_shutdown = self._program.answered
         self.gateway.stop()
         self._program.wait_until_answered(ANSWER_GRACE)
         self._calls.wait_until_idle(ANSWER_GRACE)
@@ -320,14 +322,18 @@ class GatewayInterface:
         """
         lingered = 0.0
         answered_then = self._answered_before_shutdown
+        # A download's result leaves through the action's own writer, which goes with it.
+        downloads_then = self._downloads_answered_before_shutdown
         plain = 0  # drained calls of the services answered in the callback (NMT)
         for _ in range(LINGER_ROUNDS):
             drained, plain_drained = self._drain()
             plain += plain_drained
             if (not drained and self._calls.answered == answered_then
+                    and self._program.answered == downloads_then
                     and not self._retry.waiting):
                 break
             answered_then = self._calls.answered
+            downloads_then = self._program.answered
             time.sleep(ANSWER_LINGER)
             lingered += ANSWER_LINGER
         else:  # what arrived during the last wait is answered, not waited for

@@ -28,6 +28,7 @@ class ProgramAction:
         self._refusal = refusal
         self._cancels: Dict[bytes, Callable[[], None]] = {}
         self._running = 0
+        self.answered = 0  # goals answered (results handed to ROS) since the start
         self._idle = threading.Condition()
         self._server = ActionServer(node, ProgramDownload, '~/program_download',
                                     execute_callback=self._execute,
@@ -93,4 +94,5 @@ class ProgramAction:
             self._cancels.pop(key, None)
             with self._idle:
                 self._running -= 1
+                self.answered += 1
                 self._idle.notify_all()
