@@ -1,9 +1,14 @@
 """The ``~/program_download`` action (``cbcan_ros/ProgramDownload``) onto the program service.
 
-A goal runs on the core's download thread: the execute callback only awaits its answer, so
-the executor goes on serving every other call meanwhile. Feedback is published from that
-thread; a cancel ends the download between two segments or blocks, and the result says what
-the device was left in.
+A goal runs on the core's download thread from the moment it is accepted; its execute
+callback runs only once the download has ended, to hand rclpy the result. The executor
+holds nothing meanwhile: an ``async`` execute callback awaiting the download's end would be
+resumed by rclpy's EventsExecutor over and over (it does not wait for the awaited future),
+holding the interpreter's lock from the transfer (a 256 KiB image went at two thirds of the
+speed). So the goal shows ACCEPTED while the download runs (its feedback tells the phase)
+and EXECUTING only as it ends. Feedback is published from the download's thread; a cancel
+ends the download between two segments or blocks, and the result says what the device was
+left in.
 """
 
 import threading
@@ -12,11 +17,11 @@ from typing import Callable, Dict, Optional
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
-from rclpy.task import Future as RclpyFuture
 
 from ..action import ProgramDownload
 from ..core.program.download import ProgramResult, Progress
 from ..core.program.service import ProgramRequest, ProgramService
+from ..core.sdo.request_queue import resolved
 
 
 class ProgramAction:
@@ -27,12 +32,14 @@ class ProgramAction:
         self._service = service
         self._refusal = refusal
         self._cancels: Dict[bytes, Callable[[], None]] = {}
+        self._results: Dict[bytes, ProgramResult] = {}  # downloads ended, goals to answer
         self._running = 0
         self.answered = 0  # goals answered (results handed to ROS) since the start
         self._idle = threading.Condition()
         self._server = ActionServer(node, ProgramDownload, '~/program_download',
-                                    execute_callback=self._execute,
+                                    execute_callback=self._answer,
                                     goal_callback=lambda goal: GoalResponse.ACCEPT,
+                                    handle_accepted_callback=self._start,
                                     cancel_callback=self._on_cancel,
                                     callback_group=ReentrantCallbackGroup())
 
@@ -52,12 +59,10 @@ class ProgramAction:
         cancel()
         return CancelResponse.ACCEPT
 
-    async def _execute(self, goal_handle):
+    def _start(self, goal_handle) -> None:
+        """Start the download of an accepted goal; the goal is executed once it has ended."""
         goal = goal_handle.request
-        refusal = self._refusal()
-        if refusal:
-            goal_handle.abort()
-            return ProgramDownload.Result(success=False, message=refusal)
+        key = bytes(goal_handle.goal_id.uuid)
 
         def feedback(progress: Progress) -> None:
             goal_handle.publish_feedback(ProgramDownload.Feedback(
@@ -67,16 +72,26 @@ class ProgramAction:
 
         with self._idle:
             self._running += 1
-        key = bytes(goal_handle.goal_id.uuid)
-        try:
-            future, cancel = self._service.download(ProgramRequest(
+        refusal = self._refusal()
+        if refusal:
+            future = resolved(ProgramResult(False, refusal, refused=True))
+        else:
+            future, self._cancels[key] = self._service.download(ProgramRequest(
                 goal.node_id, goal.file, goal.program, goal.expected_software_id, goal.start),
                 feedback)
-            self._cancels[key] = cancel
-            done = RclpyFuture()
-            future.add_done_callback(lambda finished: done.set_result(finished.result()))
-            result: ProgramResult = await done
-            self._cancels.pop(key, None)
+        future.add_done_callback(lambda done: self._ended(goal_handle, done.result()))
+
+    def _ended(self, goal_handle, result: ProgramResult) -> None:
+        """Have the executor answer the goal (``_answer``) now that its download ended."""
+        key = bytes(goal_handle.goal_id.uuid)
+        self._cancels.pop(key, None)
+        self._results[key] = result
+        goal_handle.execute()
+
+    def _answer(self, goal_handle):
+        """End the goal with its download's result (the execute callback)."""
+        try:
+            result = self._results.pop(bytes(goal_handle.goal_id.uuid))
             if result.success:
                 goal_handle.succeed()
             elif goal_handle.is_cancel_requested and not result.refused:
@@ -91,7 +106,6 @@ class ProgramAction:
             # rclpy sends the result in this same step of the executor, right after the
             # return: a shutdown waiting for this count sees the result leave before the
             # executor stops.
-            self._cancels.pop(key, None)
             with self._idle:
                 self._running -= 1
                 self.answered += 1
