@@ -15,9 +15,11 @@ import threading
 import zlib
 
 from action_msgs.msg import GoalStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
 from rclpy.action import ActionClient
 from test_boot_configuration import bus_file, Frames, state_of
+from test_diagnostics import DiagnosticsRecorder
 from test_drives import CSV
 from test_drives import NODE as DRIVE
 from test_drives import Rig as DriveRig
@@ -264,7 +266,9 @@ def test_a_cancel_aborts_between_segments_and_says_what_the_device_holds(rig):
 
 
 def test_while_a_download_runs_other_devices_are_served_and_it_shows_as_programming(rig):
-    setup = rig()
+    # The download is held at a segment boundary, so "while" is a fact, not a race.
+    setup = rig(diagnostics_period=0.1)
+    diagnostics = DiagnosticsRecorder(setup.gateway.client_node)
     hold = Hold(setup, 3000)
     goal, _ = setup.send(node_id=NODE, file=setup.image())
     assert hold.reached.wait(WAIT)
@@ -275,6 +279,9 @@ def test_while_a_download_runs_other_devices_are_served_and_it_shows_as_programm
     wait_until(lambda: any(n.node_id == NODE and n.programming
                            for n in setup.gateway.states[-1].nodes), WAIT,
                'node states showing the device being programmed')
+    status = diagnostics.wait_for(f'cbcan: node {NODE}', DiagnosticStatus.WARN, WAIT,
+                                  lambda shown: shown.get('Program download') == 'DOWNLOADING')
+    assert 'being programmed (DOWNLOADING' in status.message, status.message
     hold.release()
     result, _ = setup.result(goal)
     assert result.success, result.message

@@ -184,6 +184,11 @@ class NodeParameters:
                       'the PDOs a drive commonly has (needs the durand package); empty on a '
                       'real bus',
                       additional_constraints=checks.NODE_IDS)
+        self._declare('simulation.bootloaders', Parameter.Type.INTEGER_ARRAY,
+                      'Node ids (1..127) of simulated devices with a bootloader, which take '
+                      'a new program by ~/program_download (CiA 302-3; needs the durand '
+                      'package); empty on a real bus',
+                      additional_constraints=checks.NODE_IDS)
         self._declare('simulation.drive_layout', 'combined',
                       'PDO layout of the simulated drives: combined (controlword, target '
                       'position and mode in RPDO 1), vendor (the controlword in every RPDO, '
@@ -214,10 +219,14 @@ class NodeParameters:
         expected, guarded = self.node_ids('nodes'), self.node_ids('node_guarding')
         simulated = self.node_ids('simulation.devices')
         simulated_drives = self.node_ids('simulation.drives')
-        checks.check_simulated(simulated, simulated_drives)
+        bootloaders = self.node_ids('simulation.bootloaders')
+        checks.check_simulated({'simulation.devices': simulated,
+                                'simulation.drives': simulated_drives,
+                                'simulation.bootloaders': bootloaders})
         pdo_nodes = self.node_ids('pdo.nodes')
         listed = {'nodes': expected, 'node_guarding': guarded, 'pdo.nodes': pdo_nodes,
                   'simulation.devices': simulated, 'simulation.drives': simulated_drives,
+                  'simulation.bootloaders': bootloaders,
                   'drives.nodes': self.node_ids('drives.nodes')}
         checks.check_own_node_id(value('heartbeat.node_id'), listed)
         own_id = drive_parameters.own_node_id(value, listed)
@@ -236,7 +245,8 @@ class NodeParameters:
             checks.check_bitrate(interface, value('can.bitrate')),
             checks.check_guarding(guarded, expected, value('node_guarding_period'),
                                   value('heartbeat.timeout')),
-            checks.simulation_warning(interface, channel, simulated + simulated_drives),
+            checks.simulation_warning(interface, channel,
+                                      simulated + simulated_drives + bootloaders),
             checks.pdo_configure_warning(value('pdo.configure'), [
                 node_id for node_id in pdo_nodes
                 if not value(device_file_parameter(node_id))]),

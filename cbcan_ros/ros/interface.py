@@ -257,6 +257,10 @@ class GatewayInterface:
             from ..simulation.simulated_drives import simulated_drives
             devices += simulated_drives(drive_ids, self._node.get_logger().warning,
                                         parameters.value('simulation.drive_layout'), **bus)
+        bootloader_ids = parameters.node_ids('simulation.bootloaders')
+        if bootloader_ids:
+            from ..simulation.durand.bootloader import BootloaderDevice
+            devices += [BootloaderDevice(node_id, **bus) for node_id in bootloader_ids]
         return devices
 
     def activate(self) -> None:
