@@ -14,7 +14,7 @@ left in.
 import threading
 from typing import Callable, Dict, Optional
 
-from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.action import ActionServer, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
@@ -22,6 +22,7 @@ from ..action import ProgramDownload
 from ..core.program.download import ProgramResult, Progress
 from ..core.program.service import ProgramRequest, ProgramService
 from ..core.sdo.request_queue import resolved
+from .goals import cancel_goal
 
 
 class ProgramAction:
@@ -40,7 +41,8 @@ class ProgramAction:
                                     execute_callback=self._answer,
                                     goal_callback=lambda goal: GoalResponse.ACCEPT,
                                     handle_accepted_callback=self._start,
-                                    cancel_callback=self._on_cancel,
+                                    cancel_callback=lambda goal_handle: cancel_goal(
+                                        self._cancels, goal_handle),
                                     callback_group=ReentrantCallbackGroup())
 
     def wait_until_answered(self, timeout: float) -> None:
@@ -51,13 +53,6 @@ class ProgramAction:
     def destroy(self) -> None:
         """Take the action server away."""
         self._server.destroy()
-
-    def _on_cancel(self, goal_handle) -> CancelResponse:
-        cancel = self._cancels.get(bytes(goal_handle.goal_id.uuid))
-        if cancel is None:
-            return CancelResponse.REJECT
-        cancel()
-        return CancelResponse.ACCEPT
 
     def _start(self, goal_handle) -> None:
         """Start the download of an accepted goal; the goal is executed once it has ended."""
