@@ -237,8 +237,8 @@ class StrictSdoClient(SdoClient):
         The frames stay queued: what is not an abort is awaited as before.
         """
         responses = self.responses
-        if responses is None:
-            return
+        if responses is None or not responses.queue:
+            return  # the usual case, looked at before every segment: nothing arrived
         with responses.mutex:
             code = next((struct.unpack_from('<L', frame, 4)[0] for arrived, frame
                          in responses.queue if frame is not _Cancel and len(frame) >= 8
