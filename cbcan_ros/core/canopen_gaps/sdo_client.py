@@ -29,8 +29,9 @@ asks of a client):
 5. Frames shorter than the 8 bytes CiA 301 prescribes for SDO are ignored (canopen let
    ``struct.error`` escape for them), and aborts name the transfer's index and subindex.
 6. A transfer can be cancelled from another thread (bus down, shutdown); it ends at once.
-   A long one (a program image) may renew its deadline as the device answers
-   (:meth:`StrictSdoClient.renew`), so that only a device that stops answering ends it.
+   A long one (a program image) may be bounded by each answer instead (``answer_within``:
+   every answer due that long after the request it answers), so that only a device that
+   stops answering ends it.
 
 The transfer streams:
 
@@ -98,6 +99,7 @@ class StrictSdoClient(SdoClient):
         self._mux = (0, 0)
         self._kind: Optional[int] = None  # the initiating ccs; None before the initiation
         self._deadline = 0.0
+        self._answer_within: Optional[float] = None  # s after each request; None: _deadline
         self._sent_at = 0.0
         self._began = 0.0  # when the transfer's first request went out
         self._sent_any = False
@@ -107,8 +109,12 @@ class StrictSdoClient(SdoClient):
         self._abort_on_cancel: Optional[int] = None
         self.ignored_frames = 0  # frames of this transfer that answered nothing we asked
 
-    def transfer(self, index: int, subindex: int, deadline: float, run: Callable[[], object]):
+    def transfer(self, index: int, subindex: int, deadline: float, run: Callable[[], object],
+                 answer_within: Optional[float] = None):
         """Run ``run()`` (canopen stream calls) as one transfer of ``index:subindex``.
+
+        ``deadline`` bounds the whole transfer; with ``answer_within`` each answer is due
+        that long after the latest request instead, and ``deadline`` is not used.
 
         It raises only :class:`TransferAborted` (the first abort of the transfer, whatever
         canopen raised after it), :class:`TransferCancelled` or ``BusDown``. Anything else
@@ -118,6 +124,7 @@ class StrictSdoClient(SdoClient):
             self._mux = (index, subindex)
             self._kind = None
             self._deadline = deadline
+            self._answer_within = answer_within
             self._sent_any = False
             self.initiated = False
             self.ignored_frames = 0
@@ -158,11 +165,6 @@ class StrictSdoClient(SdoClient):
         if send:
             self._send_abort(code)
         return ended
-
-    def renew(self, deadline: float) -> None:
-        """Move the running transfer's deadline to ``deadline`` (a long transfer progressing)."""
-        with self._lock:
-            self._deadline = deadline
 
     def cancel(self, reason: str, abort_code: Optional[int] = None) -> None:
         """End the running transfer at once; send ``abort_code`` if it had started."""
@@ -220,6 +222,8 @@ class StrictSdoClient(SdoClient):
 
     def _raise_if_ended(self) -> None:
         """Raise the end of the transfer, if it has ended; a cancellation aborts it once."""
+        if self._cancelled is None and self._aborted is None:
+            return  # before every frame of a block: no lock while nothing has ended
         with self._lock:
             ended = self._cancelled or self._aborted
             code, self._abort_on_cancel = self._abort_on_cancel, None
@@ -276,7 +280,9 @@ class StrictSdoClient(SdoClient):
 
     def _await(self, expected: Callable[[bytes], Verdict], initiating: bool = False) -> bytes:
         while True:
-            remaining = self._deadline - time.monotonic()
+            deadline = (self._deadline if self._answer_within is None
+                        else self._sent_at + self._answer_within)
+            remaining = deadline - time.monotonic()
             try:
                 arrived, frame = self.responses.get(timeout=max(remaining, 0.0))
             except queue.Empty:

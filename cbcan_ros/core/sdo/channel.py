@@ -132,13 +132,13 @@ class SdoChannel:
             reason = written(position)
             if reason:
                 raise self._client.fail(abort_codes.LOCAL_CONTROL, reason)
-            self._client.renew(time.monotonic() + answer_within)
 
-        def run(_deadline: float) -> SdoResult:
+        def run(deadline: float) -> SdoResult:
             return self._transfer(
-                index, subindex, time.monotonic() + answer_within,
+                index, subindex, deadline,
                 lambda block: download(self._client, index, subindex, access.data, block,
-                                       each_segment), block_first=True)
+                                       each_segment), block_first=True,
+                answer_within=answer_within)
         return self._submit(run, answer_within, None)
 
     def fail_all(self, reason: str, abort_code: Optional[int] = None) -> None:
@@ -248,10 +248,15 @@ class SdoChannel:
 
     def _transfer(self, index: int, subindex: int, deadline: float,
                   transfer: Callable[[bool], Optional[bytes]],
-                  block_first: Optional[bool] = None) -> SdoResult:
-        """Run ``transfer``; ``block_first``: try block transfer (None: ``sdo.block_transfer``)."""
+                  block_first: Optional[bool] = None,
+                  answer_within: Optional[float] = None) -> SdoResult:
+        """Run ``transfer``; ``block_first``: try block transfer (None: ``sdo.block_transfer``).
+
+        ``answer_within``: each answer due that long after its request, not by ``deadline``.
+        """
         def attempt(block: bool) -> Optional[bytes]:
-            return self._client.transfer(index, subindex, deadline, lambda: transfer(block))
+            return self._client.transfer(index, subindex, deadline, lambda: transfer(block),
+                                         answer_within)
 
         def run() -> Optional[bytes]:
             if self._block if block_first is None else block_first:
