@@ -117,11 +117,12 @@ class Hold:
         stream = service._sdo_stream
 
         def held(access, answer_within, written):
-            def each(position: int):
-                reason = written(position)
+            def each(position: int, block: bool):
+                reason = written(position, block)
                 if position >= at and not self.reached.is_set():
                     self.reached.set()
-                    reason = wait_until(lambda: written(position) or self._released.is_set(),
+                    reason = wait_until(lambda: written(position, block)
+                                        or self._released.is_set(),
                                         WAIT, 'the download told to end, or released')
                     reason = reason if isinstance(reason, str) else None
                 return reason
@@ -169,6 +170,7 @@ def test_an_image_is_stored_byte_for_byte_started_and_identified(rig):
     assert result.software_id == expected and result.abort_code == 0, result
     assert setup.device.starts == 1 and setup.device.program_running
     assert 'started, software id' in result.message, result.message
+    assert 'block transfer' in result.message, result.message
     phases = [message.phase for message in feedback]
     assert [p for n, p in enumerate(phases) if p not in phases[:n]] == PHASES, phases
     downloading = [m for m in feedback if m.phase == 'DOWNLOADING']

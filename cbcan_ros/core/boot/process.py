@@ -77,7 +77,7 @@ class BootLink:
     await_boot_up: Callable[[Callable[[], str], float], bool]
     await_heartbeat: Callable[[float], bool]
     read_pdos: Callable[[], str]
-    stream: Callable[[Access, float, Callable[[int], Optional[str]]], SdoResult]
+    stream: Callable[[Access, float, Callable[[int, bool], Optional[str]]], SdoResult]
 
 
 @dataclass(frozen=True)

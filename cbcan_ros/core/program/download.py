@@ -80,14 +80,15 @@ class ProgramLink:
 
     - ``sdo(accesses, timeout)``: their results in order; stops sending once ``ended()``.
     - ``stream(access, answer_within, written)``: the image, each answer within
-      ``answer_within`` s; ``written(bytes so far)`` returns why to stop, or None.
+      ``answer_within`` s; ``written(bytes so far, block)`` (block transfer, else
+      segmented) returns why to stop, or None.
     - ``await_boot_up(send, timeout)``: calls ``send()`` (returns why it failed, or ''), then
       whether the device's boot-up came within ``timeout`` s.
     - ``ended()``: why the download must end now (cancel, shutdown, bus down), or ''.
     """
 
     sdo: Callable[[Sequence[Access], float], List[SdoResult]]
-    stream: Callable[[Access, float, Callable[[int], Optional[str]]], SdoResult]
+    stream: Callable[[Access, float, Callable[[int, bool], Optional[str]]], SdoResult]
     await_boot_up: Callable[[Callable[[], str], float], bool]
     ended: Callable[[], str]
 
@@ -260,9 +261,12 @@ class ProgramDownload:
         total = len(self._image)
         began = time.monotonic()
         told = [began]
+        kind = ['']
 
-        def written(position: int) -> Optional[str]:
+        def written(position: int, block: bool) -> Optional[str]:
             self._sent = position
+            kind[0] = ('block transfer' if block else 'expedited transfer' if total <= 4
+                       else 'segmented transfer')
             now = time.monotonic()
             if now - told[0] >= FEEDBACK_PERIOD or position == total:
                 told[0] = now
@@ -282,7 +286,8 @@ class ProgramDownload:
                           f'{result.message}', result.abort_code)
         self._sent = total
         elapsed = max(time.monotonic() - began, 1e-6)
-        self._transfer = f'{total} bytes in {elapsed:.2f} s, {total / elapsed / 1024:.1f} KiB/s'
+        self._transfer = (f'{kind[0]}, {total} bytes in {elapsed:.2f} s, '
+                          f'{total / elapsed / 1024:.1f} KiB/s')
 
     def _start_program(self) -> None:
         self._begin(STARTING)

@@ -61,6 +61,7 @@ class _Run:
         self.reason = ''  # why it must end (cancel, shutdown); '' while it may go on
         self.boot_ups = 0
         self.progress = Progress('')
+        self.telling = True  # its progress is told to the caller (until that fails once)
         self.thread: Optional[threading.Thread] = None
 
     @prompt
@@ -161,7 +162,13 @@ class ProgramService:
               feedback: Callable[[Progress], None]) -> None:
         def told(progress: Progress) -> None:
             run.progress = progress
-            feedback(progress)
+            if run.telling:
+                try:
+                    feedback(progress)
+                except Exception as error:  # noqa: BLE001 - the download goes on without it
+                    run.telling = False
+                    LOGGER.warning('node %d: progress of the program download cannot be told '
+                                   '(%r); the download goes on', request.node_id, error)
 
         try:
             result, image = self._refusal(request)

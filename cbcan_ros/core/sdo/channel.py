@@ -117,19 +117,20 @@ class SdoChannel:
         return self._submit(run, timeout, len(accesses))
 
     def stream(self, access: Access, answer_within: float,
-               written: Callable[[int], Optional[str]]) -> 'Future[SdoResult]':
+               written: Callable[[int, bool], Optional[str]]) -> 'Future[SdoResult]':
         """Queue a long write (a program image); block transfer first, whatever the parameter.
 
         No deadline bounds the whole: it waits ``answer_within`` s at most in the queue, and
         the device must answer each segment (each block) within ``answer_within`` s, so only
         a device that stops answering ends it, however large the data. ``written(bytes so
-        far)`` is called after each segment; a reason it returns ends the transfer there
-        with an abort 0x08000021 (local control) on the bus.
+        far, block)`` (block: by block transfer, else segmented) is called after each
+        segment; a reason it returns ends the transfer there with an abort 0x08000021 (local
+        control) on the bus.
         """
         index, subindex = access.index, access.subindex
 
-        def each_segment(position: int) -> None:
-            reason = written(position)
+        def each_segment(position: int, block: bool) -> None:
+            reason = written(position, block)
             if reason:
                 raise self._client.fail(abort_codes.LOCAL_CONTROL, reason)
 
@@ -137,8 +138,8 @@ class SdoChannel:
             return self._transfer(
                 index, subindex, deadline,
                 lambda block: download(self._client, index, subindex, access.data, block,
-                                       each_segment), block_first=True,
-                answer_within=answer_within)
+                                       lambda position: each_segment(position, block)),
+                block_first=True, answer_within=answer_within)
         return self._submit(run, answer_within, None)
 
     def fail_all(self, reason: str, abort_code: Optional[int] = None) -> None:
