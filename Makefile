@@ -105,6 +105,7 @@ bench: build
 	$(ROS_ENV) python $(ROOT)/bench/bench_raw.py $(filter --quick,$(ARGS))
 	$(ROS_ENV) python $(ROOT)/bench/bench_shutdown.py $(filter --quick,$(ARGS))
 	$(ROS_ENV) python $(ROOT)/bench/bench_boot.py $(filter --quick,$(ARGS))
+	$(ROS_ENV) python $(ROOT)/bench/bench_program_download.py $(filter --quick,$(ARGS))
 
 clean:
 	rm -rf $(ROOT)/build $(ROOT)/install $(ROOT)/log $(ROOT)/.pytest_cache

@@ -11,6 +11,10 @@ up and then answers commands (one JSON object a line) on standard input until ``
 * ``devices``: simulated devices (``SimulatedDevice``, every object of ``--eds``) on one
   udp_multicast bus, for ``bench_boot.py``; an NMT reset node sets every value back to the
   file's default. ``{"op": "stats"}`` answers how many SDO writes each device took so far;
+* ``bootloader``: one simulated device with a bootloader (``BootloaderDevice``, CiA 302-3)
+  at ``--nodes``, flashing and clearing at once (the device's own time is not what
+  ``bench_program_download.py`` measures). ``{"op": "stats"}`` answers the size and CRC-32
+  of the image it holds and how often it was started;
 * ``reader``: a bare python-can receiver that takes every frame of the bus and counts it by
   kind, nothing else: the floor of receiving what the gateway receives.
   ``{"op": "stats"}`` answers the counts so far;
@@ -316,6 +320,20 @@ def run_devices(args, bus_options: Dict) -> None:
             shared.close()
 
 
+def run_bootloader(args, bus_options: Dict) -> None:
+    """Host one ``BootloaderDevice`` at the first of ``--nodes``, clearing and flashing at once."""
+    bootloader, = import_retrying('cbcan_ros.simulation.durand.bootloader')
+    device = bootloader.BootloaderDevice(args.nodes[0], interface='udp_multicast',
+                                         channel=args.channel, bus_options=bus_options,
+                                         flash_time=0.0, clear_time=0.0)
+    device.start()
+    try:
+        _serve(lambda: {'image_size': len(device.image), 'software_id': device.software_id,
+                        'starts': device.starts})
+    finally:
+        device.stop()
+
+
 def run_reader(args, bus_options: Dict) -> None:
     """Receive and count every frame, by kind: the floor of receiving them.
 
@@ -401,8 +419,8 @@ def run_relay(args, bus_options: Dict) -> None:
         bus.shutdown()
 
 
-MODES = {'drives': run_drives, 'devices': run_devices, 'reader': run_reader,
-         'relay': run_relay}
+MODES = {'drives': run_drives, 'devices': run_devices, 'bootloader': run_bootloader,
+         'reader': run_reader, 'relay': run_relay}
 
 
 def main(argv=None) -> int:

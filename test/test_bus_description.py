@@ -555,3 +555,18 @@ def test_load_names_a_file_it_cannot_read(tmp_path):
     with pytest.raises(DescriptionError) as error:
         load(str(binary))
     assert str(error.value) == f'{str(binary)!r} is not UTF-8 text'
+
+
+def test_software_file_and_version_are_read_and_the_file_needs_its_version():
+    bus = read("""
+        nodes:
+          io: {node_id: 5, software_file: firmware/io.bin, software_version: "0x00010203"}
+        """)
+    (device,) = bus.devices
+    assert device.software_version == 0x00010203
+    assert device.software_file == os.path.join(os.path.dirname(PATH), 'firmware', 'io.bin')
+    assert bus.unsupported == ()
+    assert 'no software_version beside it' in refused("""
+        nodes:
+          io: {node_id: 5, software_file: io.bin}
+        """)

@@ -116,6 +116,14 @@ NOT_RUN = {
                                         'test_raw_cli runs dump and send',
     '0x705 [1] 7F  heartbeat node 5': 'output of cbcan_cli dump: test_raw_cli checks lines',
     'ros2 run my_bms bms_node': 'the ros2 CLI and a program written for ros2_socketcan',
+    'cbcan_cli program-download 8 /home/robot/firmware': "a real device's firmware file, and "
+                                                         'its speed varies: the Python block '
+                                                         "beside it downloads into make run's "
+                                                         'node 8, test_program_download runs '
+                                                         'the command',
+    'software_file: firmware/io_v2.bin': 'names a firmware file that is not on this machine: '
+                                         'test_program_download boots such a description '
+                                         'against a simulated bootloader',
 }
 # Commands of a cbcan_cli block that are not cbcan_cli calls: why they do not run here.
 NOT_RUN_COMMANDS = {

@@ -288,6 +288,11 @@ def test_a_drive_reset_to_its_factory_pdos_is_configured_from_its_eds_and_moves(
         return 3 in rpdos and rpdos[3].enabled and [
             entry.index for entry in rpdos[3].entries] == [cia402.CONTROLWORD, TARGET_POSITION]
     wait_until(vendor_layout_read, WAIT, "the EDS's RPDO 3 (controlword, target) read back")
+    # The mapping is read within the boot, which ends a moment later: enable is refused
+    # until it has (seen under load, the boot thread starved past the checks below).
+    wait_until(lambda: next(state for state in gateway.boot.states()
+                            if state.node_id == NODE).state == 'BOOTED', WAIT,
+               'the boot of the drive ended')
     assert axis.gateway.call('nmt_command', node_id=NODE, command=1).success
     wait_until(lambda: axis.latest_state() == 'SWITCH_ON_DISABLED'
                and gateway.monitor.status(NODE).state == OPERATIONAL, WAIT,

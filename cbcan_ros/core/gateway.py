@@ -10,7 +10,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 import logging
 import threading
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import can
 import canopen
@@ -32,6 +32,8 @@ from .lss.frames import is_all_waiting, probe_wait
 from .lss.master import LssMaster
 from .pdo.service import PdoService
 from .pdo.sync import SyncProducer
+from .program.download import ProgramSettings
+from .program.service import ProgramService
 from .raw.frames import canopen_ids, echoes, RawFrames, RawSettings
 from .receive_buffer import deepen_receive_buffer
 from .sdo import abort_codes
@@ -80,6 +82,7 @@ class GatewayConfig:
     raw: RawSettings = RawSettings()  # raw CAN frames beside CANopen (raw.filters, send_allow)
     # Every device it names checked, configured and started at each boot (bus_config)
     bus_description: Optional[BusDescription] = None
+    program: ProgramSettings = ProgramSettings()  # program downloads (CiA 302-3)
 
 
 @dataclass(frozen=True)
@@ -198,8 +201,12 @@ class Gateway:
         self._deadlines = Deadlines()
         self.boot = BootService(self.network, boots, self.sdo_batch, self.nmt_command,
                                 self.pdo, self.monitor, self._deadlines, config.sdo_timeout,
-                                self.drives.enabled)
-        self.drives.refuse_enable_when(self.boot.refusal)
+                                self.drives.enabled, self.sdo_stream, config.program)
+        self.program = ProgramService(self.network, self.sdo_batch, self.sdo_stream,
+                                      self.monitor, self.drives.enabled,
+                                      config.write_protection.refuses_write, config.program)
+        self.drives.refuse_enable_when(
+            lambda node_id: self.boot.refusal(node_id) or self.program.refusal(node_id))
         self.raw = RawFrames(self.bus, config.raw, config.write_protection,
                              lambda: canopen_ids(self.pdo),
                              echoes(config.interface, config.bus_options))
@@ -257,8 +264,10 @@ class Gateway:
                 return
             self._closing = True
             self._stopping_drives = True
-        # The boots and the PDO service first: nothing more is written for a boot, and
+        # The downloads, the boots and the PDO service first: a download ends between two
+        # segments with an abort and is answered, nothing more is written for a boot, and
         # mapping reads, refused from here on, are no failures.
+        self.program.stop()
         self.boot.stop()
         self.pdo.stop()
         # The drives' stop commands go next, while the bus is open; callers' requests are
@@ -293,6 +302,18 @@ class Gateway:
                   timeout: float = 0.0) -> 'Future[SdoResult]':
         """Write ``data`` to ``index:subindex`` of ``node_id`` (0 = own dictionary)."""
         return self._single(Access(node_id, index, subindex, True, bytes(data)), timeout)
+
+    def sdo_stream(self, access: Access, answer_within: float,
+                   written: Callable[[int], Optional[str]]) -> 'Future[SdoResult]':
+        """Write a large object (a program image) to a device: ``SdoChannel.stream``."""
+        refused = refusal(access, answer_within, self.config.write_protection)
+        if refused is None and access.node_id == 0:
+            refused = SdoResult.failed("node_id 0 (the gateway's own dictionary) takes no "
+                                       'stream; nothing was sent')
+        if refused is not None:
+            return resolved(refused)
+        return self._channel_for(access.node_id, None, lambda channel: channel.stream(
+            access, answer_within, written))
 
     def sdo_batch(self, accesses: Sequence[Access], timeout: float = 0.0,
                   stop=None) -> 'Future[List[SdoResult]]':

@@ -22,8 +22,10 @@ in time, :class:`GatewayUnavailable`. A value that does not fit its type raises 
 from dataclasses import dataclass
 from typing import Dict, List, NamedTuple, Optional, Sequence, Union
 
+from rclpy.action import ActionClient
 from rclpy.node import Node
 
+from ..action import ProgramDownload
 from ..core.boot.service import DEFAULT_CALL_TIMEOUT
 from ..core.sdo.requests import MAX_TIMEOUT
 from ..core.values import check_type, decode_value, encode, Value
@@ -42,6 +44,8 @@ from .service_caller import (
 
 DEFAULT_GATEWAY = '/can0/cbcan'
 DEFAULT_WAIT = 5.0
+# Seconds between looks at whether the gateway is still there while an action's goal runs.
+PRESENCE_CHECK = 1.0
 
 NMT_COMMANDS = {
     'start': NmtCommand.Request.START,
@@ -159,6 +163,7 @@ class GatewayClient(ServiceCaller):
     def __init__(self, node: Node, gateway: str = DEFAULT_GATEWAY, wait: float = DEFAULT_WAIT):
         super().__init__(node, gateway, wait)
         self._latest: Dict[str, List] = {}  # topic: the messages kept (the newest last)
+        self._downloads: Optional[ActionClient] = None
 
     def subscribe_states(self, callback):
         """Call ``callback(NodeStates)`` on ``node``'s executor for every state change.
@@ -313,6 +318,45 @@ class GatewayClient(ServiceCaller):
 
     boot_states = blocking(_boot_states)
     boot_states_async = awaitable(_boot_states)
+
+    def _program_download(self, node_id: int, file: str, program: int = 1,
+                          expected_software_id: int = 0, start: bool = True, feedback=None):
+        """Download the program image ``file`` into a device and start it (CiA 302-3).
+
+        ``file`` is read by the gateway: a path on its machine. ``feedback(message)`` (a
+        ``ProgramDownload.Feedback``: phase, bytes_sent, bytes_total, bytes_per_second) is
+        called on the client's thread. Returns the ``ProgramDownload.Result`` (its
+        ``software_id``); raises RequestFailed when the download was refused or failed (its
+        message says what the device was left in), GatewayUnavailable when no gateway takes
+        or answers it.
+        """
+        with self._lock:
+            if self._downloads is None:
+                self._downloads = ActionClient(self._own, ProgramDownload,
+                                               f'{self.gateway}/program_download')
+            action = self._downloads
+        if not (yield self._when(action.server_is_ready, self.wait)):
+            raise GatewayUnavailable(f'no gateway at {self.gateway}: is cbcan_node running? '
+                                     f'(waited {self.wait:g} s for program_download)')
+        sent = action.send_goal_async(
+            ProgramDownload.Goal(node_id=node_id, file=file, program=program,
+                                 expected_software_id=expected_software_id, start=start),
+            feedback_callback=(lambda message: feedback(message.feedback)) if feedback
+            else None)
+        if not (yield self._when(sent.done, self.wait + ANSWER_MARGIN)):
+            raise GatewayUnavailable(f'{self.gateway}/program_download did not take the goal')
+        answered = sent.result().get_result_async()
+        while not (yield self._when(answered.done, PRESENCE_CHECK)):
+            if not action.server_is_ready():
+                raise GatewayUnavailable(f'{self.gateway} went away during the program '
+                                         f'download to node {node_id}')
+        result = answered.result().result
+        if not result.success:
+            raise RequestFailed(f'program download to node {node_id}', result)
+        return result
+
+    program_download = blocking(_program_download)
+    program_download_async = awaitable(_program_download)
 
 
 __all__ = ['GatewayClient', 'GatewayError', 'GatewayUnavailable', 'NMT_COMMANDS', 'Read',

@@ -14,6 +14,7 @@ from rclpy.parameter import Parameter
 
 from ..core import eds
 from ..core.gateway import GatewayConfig
+from ..core.program.download import ProgramSettings
 from ..core.sdo.write_protection import RULE_FORMAT, WriteProtection
 from ..simulation.simulated_drives import LAYOUTS
 from . import boot_parameters, drive_parameters, raw_parameters
@@ -161,6 +162,19 @@ class NodeParameters:
                       additional_constraints=checks.NODE_IDS)
         drive_parameters.declare(self._declare, self._given_ids('drives.nodes'))
         raw_parameters.declare(self._declare)
+        self._declare('program_download.flash_timeout', 30.0,
+                      'Seconds a program download (~/program_download) waits for the flash: '
+                      'for the clear command (0x1F51 = 3) and for 0x1F57 to show the flash '
+                      'no longer busy after clearing and after the image',
+                      floating_point_range=_between(0.1, 60.0))
+        self._declare('program_download.start_timeout', 10.0,
+                      'Seconds a program download waits, after starting the new program '
+                      '(0x1F51 = 1), for the boot-up message of the device',
+                      floating_point_range=_between(0.1, 600.0))
+        self._declare('program_download.at_boot', False,
+                      "Let a boot download a device's software_file of the bus description "
+                      '(bus_config) when its 0x1F56 differs from software_version; false: '
+                      'such a device fails its boot with CiA 302-2 error H')
         self._declare('simulation.devices', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) of simulated CANopen devices to put on the bus, for '
                       'trying the gateway without hardware; empty on a real bus',
@@ -169,6 +183,11 @@ class NodeParameters:
                       'Node ids (1..127) of simulated CiA 402 drives to put on the bus, with '
                       'the PDOs a drive commonly has (needs the durand package); empty on a '
                       'real bus',
+                      additional_constraints=checks.NODE_IDS)
+        self._declare('simulation.bootloaders', Parameter.Type.INTEGER_ARRAY,
+                      'Node ids (1..127) of simulated devices with a bootloader, which take '
+                      'a new program by ~/program_download (CiA 302-3; needs the durand '
+                      'package); empty on a real bus',
                       additional_constraints=checks.NODE_IDS)
         self._declare('simulation.drive_layout', 'combined',
                       'PDO layout of the simulated drives: combined (controlword, target '
@@ -200,10 +219,14 @@ class NodeParameters:
         expected, guarded = self.node_ids('nodes'), self.node_ids('node_guarding')
         simulated = self.node_ids('simulation.devices')
         simulated_drives = self.node_ids('simulation.drives')
-        checks.check_simulated(simulated, simulated_drives)
+        bootloaders = self.node_ids('simulation.bootloaders')
+        checks.check_simulated({'simulation.devices': simulated,
+                                'simulation.drives': simulated_drives,
+                                'simulation.bootloaders': bootloaders})
         pdo_nodes = self.node_ids('pdo.nodes')
         listed = {'nodes': expected, 'node_guarding': guarded, 'pdo.nodes': pdo_nodes,
                   'simulation.devices': simulated, 'simulation.drives': simulated_drives,
+                  'simulation.bootloaders': bootloaders,
                   'drives.nodes': self.node_ids('drives.nodes')}
         checks.check_own_node_id(value('heartbeat.node_id'), listed)
         own_id = drive_parameters.own_node_id(value, listed)
@@ -222,7 +245,8 @@ class NodeParameters:
             checks.check_bitrate(interface, value('can.bitrate')),
             checks.check_guarding(guarded, expected, value('node_guarding_period'),
                                   value('heartbeat.timeout')),
-            checks.simulation_warning(interface, channel, simulated + simulated_drives),
+            checks.simulation_warning(interface, channel,
+                                      simulated + simulated_drives + bootloaders),
             checks.pdo_configure_warning(value('pdo.configure'), [
                 node_id for node_id in pdo_nodes
                 if not value(device_file_parameter(node_id))]),
@@ -256,7 +280,11 @@ class NodeParameters:
             heartbeat_period=value('heartbeat.period'),
             drives=drives,
             raw=raw_parameters.settings(self._strings),
-            bus_description=self.bus_file.description)
+            bus_description=self.bus_file.description,
+            program=ProgramSettings(answer_timeout=value('sdo.timeout'),
+                                    flash_timeout=value('program_download.flash_timeout'),
+                                    start_timeout=value('program_download.start_timeout'),
+                                    at_boot=value('program_download.at_boot')))
 
     def joints(self) -> Dict[int, drive_parameters.Joint]:
         """Return every drive's joint (name, scales); raise ConfigurationError when wrong."""

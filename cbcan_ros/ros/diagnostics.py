@@ -29,6 +29,7 @@ from ..core.gateway import Gateway
 from ..core.nmt import NodeStatus
 from ..core.pdo.service import PdoStatistics
 from ..core.pdo.sync import SyncStatus
+from ..core.program.download import DOWNLOADING, Progress
 from ..core.sdo.channel import SdoStatistics
 from .drive_parameters import Joint
 
@@ -65,7 +66,8 @@ class Diagnostics:
       (NOT_DETECTED), STALE when a device that is not expected fell silent, WARN while it has
       an active EMCY (one not cleared by an error reset) or, for a device of ``pdo.nodes``,
       while an event-driven TPDO has been silent for twice its event timer, else OK. Its
-      PDOs received and sent per second and the frames shorter than their mapping.
+      PDOs received and sent per second and the frames shorter than their mapping. WARN
+      while a program download runs for it ("being programmed", its phase and progress).
     - ``<node>: drive <id>`` for every drive: ERROR in FAULT (the error code and its
       meaning), WARN while not heard or when the last set-point of its last stream of PP
       targets was missed (shown until a later stream's is reached), else OK with its state.
@@ -211,16 +213,19 @@ class Diagnostics:
         sdo = gateway.sdo_statistics()
         pdo = gateway.pdo.statistics()
         boots = {state.node_id: state for state in gateway.boot.states()}
+        programming = gateway.program.programming()
         statuses = [self._device_status(node_id,
                                         heartbeats.get(node_id) or gateway.monitor.status(node_id),
                                         emergencies.get(node_id) or EmcyStatus(node_id),
                                         sdo.get(node_id) or SdoStatistics(), bus_up)
                     for node_id in sorted(set(heartbeats) | set(emergencies) | set(sdo) |
-                                          set(pdo) | set(boots))]
+                                          set(pdo) | set(boots) | set(programming))]
         for status in statuses:
             node_id = int(status.name.rpartition(' ')[2])
             if node_id in boots:
                 self._add_boot(status, boots[node_id])
+            if node_id in programming:
+                self._add_programming(status, programming[node_id])
             if node_id in pdo:
                 operational = gateway.monitor.status(node_id).state_name == 'OPERATIONAL'
                 self._add_pdo(status, pdo[node_id], self._previous_pdo.get(node_id), elapsed,
@@ -244,6 +249,18 @@ class Diagnostics:
             'Boot message': boot.message or 'none',
             'Boots completed': boot.boots,
             'Objects written at its last boot': boot.writes,
+        }.items()]
+
+    @staticmethod
+    def _add_programming(status: DiagnosticStatus, progress: Progress) -> None:
+        """Show a device being programmed: a warning, its application is not running."""
+        status.level = bytes([max(status.level[0], WARN)])
+        done = (f', {100 * progress.bytes_sent // progress.bytes_total} %'
+                if progress.bytes_total and progress.phase == DOWNLOADING else '')
+        status.message += f'; being programmed ({progress.phase or "starting"}{done})'
+        status.values += [KeyValue(key=key, value=str(value)) for key, value in {
+            'Program download': progress.phase or 'starting',
+            'Program bytes sent': f'{progress.bytes_sent} of {progress.bytes_total}',
         }.items()]
 
     @staticmethod

@@ -23,7 +23,7 @@ import re
 import threading
 from typing import Callable, Dict, List, Optional
 
-from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.action import ActionServer, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -37,6 +37,7 @@ from ..core.drives.service import DriveService
 from ..core.drives.status import DriveResult, DriveStatus, failed
 from ..msg import DriveState
 from .drive_parameters import Joint
+from .goals import cancel_goal
 from .pdo import stamp_of
 
 LOGGER = logging.getLogger(__name__)
@@ -93,7 +94,8 @@ class DriveTopics:
         self._action = ActionServer(node, DriveMove, '~/move',
                                     execute_callback=self._execute_move,
                                     goal_callback=lambda goal: GoalResponse.ACCEPT,
-                                    cancel_callback=self._on_cancel,
+                                    cancel_callback=lambda goal_handle: cancel_goal(
+                                        self._cancels, goal_handle),
                                     callback_group=ReentrantCallbackGroup())
         # Changes are published by a thread of their own, not by the bus thread that sees
         # them: every change told, in order, then the newest if one was told late.
@@ -264,13 +266,6 @@ class DriveTopics:
             LOGGER.warning('%s (later ones like it are not logged%s)', problem, until)
 
     # The move action.
-
-    def _on_cancel(self, goal_handle) -> CancelResponse:
-        cancel = self._cancels.get(bytes(goal_handle.goal_id.uuid))
-        if cancel is None:
-            return CancelResponse.REJECT
-        cancel()
-        return CancelResponse.ACCEPT
 
     async def _execute_move(self, goal_handle):
         goal = goal_handle.request

@@ -54,6 +54,7 @@ from .diagnostics import Diagnostics
 from .drives import DriveTopics, fill_command
 from .emcy import EmcyPublisher
 from .pdo import check_request, entry_values, PdoTopics
+from .program import ProgramAction
 from .publish_on_change import PublishOnChange
 from .raw_frames import RawFrameTopics
 from .rclpy_gaps import drain
@@ -163,6 +164,7 @@ class GatewayInterface:
         self.active = active
         self._shutting_down = False
         self._answered_before_shutdown = 0
+        self._downloads_answered_before_shutdown = 0
         self._log_handler = _RosLogHandler(node.get_logger())
         core_logger = logging.getLogger(PACKAGE)
         core_logger.setLevel(logging.INFO)
@@ -189,6 +191,8 @@ class GatewayInterface:
                                    lambda: None if self.active else INACTIVE)
         self._boots = BootTopics(node, self.gateway.boot,
                                  lambda: None if self.active else INACTIVE)
+        self._program = ProgramAction(node, self.gateway.program,
+                                      lambda: None if self.active else INACTIVE)
         # Calls must overlap: a slow device never holds up the others or the state topic.
         options = dict(qos_profile=SERVICE_QOS, callback_group=ReentrantCallbackGroup())
         self._deferred = [
@@ -224,6 +228,7 @@ class GatewayInterface:
         self._states_lock = threading.Lock()
         self._states_changed = PublishOnChange(self._publish_states, 'node states')
         self.gateway.monitor.add_listener(self._states_changed.changed)
+        self.gateway.program.add_listener(self._states_changed.changed)
         self._pdo_topics = PdoTopics(node, self.gateway.pdo, self._on_tpdo_message,
                                      lambda: self.active)
         self._diagnostics = Diagnostics(node, self.gateway, parameters.joints())
@@ -252,6 +257,10 @@ class GatewayInterface:
             from ..simulation.simulated_drives import simulated_drives
             devices += simulated_drives(drive_ids, self._node.get_logger().warning,
                                         parameters.value('simulation.drive_layout'), **bus)
+        bootloader_ids = parameters.node_ids('simulation.bootloaders')
+        if bootloader_ids:
+            from ..simulation.durand.bootloader import BootloaderDevice
+            devices += [BootloaderDevice(node_id, **bus) for node_id in bootloader_ids]
         return devices
 
     def activate(self) -> None:
@@ -280,7 +289,9 @@ class GatewayInterface:
         if not self._shutting_down:
             self._shutting_down = True
             self._answered_before_shutdown = self._calls.answered
+            self._downloads_answered_before_shutdown = self._program.answered
         self.gateway.stop()
+        self._program.wait_until_answered(ANSWER_GRACE)
         self._calls.wait_until_idle(ANSWER_GRACE)
         self._mailbox_loop.close()
 
@@ -301,6 +312,7 @@ class GatewayInterface:
         node.destroy_publisher(publisher)
         self._emcy.destroy()
         self._drives.destroy()
+        self._program.destroy()
         self._boots.close()
         self._pdo_topics.destroy()
         self._raw.destroy()
@@ -314,14 +326,18 @@ class GatewayInterface:
         """
         lingered = 0.0
         answered_then = self._answered_before_shutdown
+        # A download's result leaves through the action's own writer, which goes with it.
+        downloads_then = self._downloads_answered_before_shutdown
         plain = 0  # drained calls of the services answered in the callback (NMT)
         for _ in range(LINGER_ROUNDS):
             drained, plain_drained = self._drain()
             plain += plain_drained
             if (not drained and self._calls.answered == answered_then
+                    and self._program.answered == downloads_then
                     and not self._retry.waiting):
                 break
             answered_then = self._calls.answered
+            downloads_then = self._program.answered
             time.sleep(ANSWER_LINGER)
             lingered += ANSWER_LINGER
         else:  # what arrived during the last wait is answered, not waited for
@@ -470,9 +486,11 @@ class GatewayInterface:
             if not self.active or self._states_publisher is None:
                 return
             message = NodeStates(stamp=self._node.get_clock().now().to_msg())
+            programming = self.gateway.program.programming()
             message.nodes = [
                 NodeState(node_id=status.node_id, state=status.state,
                           state_name=status.state_name,
-                          last_seen=_time(status.last_seen) if status.last_seen else Time())
+                          last_seen=_time(status.last_seen) if status.last_seen else Time(),
+                          programming=status.node_id in programming)
                 for status in self.gateway.monitor.statuses()]
             self._states_publisher.publish(message)

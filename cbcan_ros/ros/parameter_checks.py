@@ -316,21 +316,25 @@ def check_file(name: str, path: str) -> None:
                                  'the path of an existing file, or empty')
 
 
-def check_simulated(devices: List[int], drives: List[int]) -> None:
-    """Refuse a node id given to both a simulated device and a simulated drive."""
-    both = sorted(set(devices) & set(drives))
-    if both:
-        raise ConfigurationError('simulation.drives', drives,
-                                 f'holds node id {both[0]}, which simulation.devices '
-                                 f'{devices} holds too: two devices would answer as one',
-                                 'node ids that are not in simulation.devices')
+def check_simulated(lists: Dict[str, List[int]]) -> None:
+    """Refuse a node id that two kinds of simulated device (``{parameter: ids}``) both hold."""
+    seen: Dict[int, str] = {}
+    for name, node_ids in lists.items():
+        for node_id in node_ids:
+            if node_id in seen:
+                raise ConfigurationError(name, node_ids,
+                                         f'holds node id {node_id}, which {seen[node_id]} '
+                                         f'{lists[seen[node_id]]} holds too: two devices '
+                                         f'would answer as one',
+                                         f'node ids that are not in {seen[node_id]}')
+            seen[node_id] = name
 
 
 def simulation_warning(interface: str, channel: str, devices: List[int]) -> Optional[str]:
     """Return a warning when simulated devices join a bus that may be a real one."""
     if devices and interface not in ('virtual', 'udp_multicast') and \
             not channel.startswith('vcan'):
-        return (f'parameters simulation.devices and simulation.drives: simulated devices '
+        return (f'parameters simulation.devices, drives and bootloaders: simulated devices '
                 f'{devices} answer as node ids on {interface} channel {channel!r}; on a real '
                 f'bus they collide with real devices: keep both empty there')
     return None

@@ -14,10 +14,11 @@ Where ros2_canopen or dcfgen leave a choice, or differ from each other:
   ros2_canopen's cogen lets the defaults win instead, and loses ``sdo`` given there (its
   issue #257).
 - ``@BUS_CONFIG_PATH@`` in a path is the file's folder: ros2_canopen's CMake replaces it by
-  the installed copy of that folder. A relative ``options.dcf_path`` is relative to the
-  file's folder; a node's ``dcf`` is relative to its ``dcf_path`` (the node's own, else
-  ``options.dcf_path``, else the file's folder), where ros2_canopen's drivers open it. The
-  path is made absolute; whether the file exists is the caller's to check.
+  the installed copy of that folder. A relative ``options.dcf_path`` and ``software_file``
+  are relative to the file's folder; a node's ``dcf`` is relative to its ``dcf_path`` (the
+  node's own, else ``options.dcf_path``, else the file's folder), where ros2_canopen's
+  drivers open it. The path is made absolute; whether the file exists is the caller's to
+  check.
 - A key this gateway does not implement is listed in ``BusDescription.unsupported`` by its
   path (``nodes.left_wheel.polling``, ``master.baudrate``; list entries counted from 1, as
   ``nodes.x.sdo[2].foo``), for one warning; none is dropped silently. The keys naming
@@ -63,8 +64,8 @@ SCALE_KEYS = ('scale_pos_to_dev', 'scale_pos_from_dev', 'scale_vel_to_dev',
 NODE_FLAGS = ('heartbeat_consumer', 'boot', 'mandatory', 'reset_communication',
               'store_configuration', 'start')  # the yes/no keys
 NODE_KEYS = frozenset({'node_id', 'dcf', 'dcf_path', 'driver', 'sdo', 'tpdo', 'rpdo',
-                       'heartbeat_producer', 'restore_configuration', *IDENTITY_KEYS,
-                       *SCALE_KEYS, *NODE_FLAGS})
+                       'heartbeat_producer', 'restore_configuration', 'software_file',
+                       'software_version', *IDENTITY_KEYS, *SCALE_KEYS, *NODE_FLAGS})
 PDO_KEYS = frozenset({'enabled', 'cob_id', 'transmission', 'transmission_type',
                       'event_timer', 'inhibit_time', 'mapping'})
 SDO_KEYS = frozenset({'index', 'sub_index', 'subindex', 'value'})
@@ -127,6 +128,8 @@ class DeviceDescription:
     restore_configuration: int = 0  # the 0x1011 sub-index written before configuring; 0 none
     store_configuration: bool = False  # ours: 0x1010:1 "save" after a verified configuration
     start: bool = True  # ours (dcfgen has only master.start_nodes): NMT start after its boot
+    software_file: str = ''  # absolute path of the program image a boot may download; ''
+    software_version: Optional[int] = None  # 0x1F56:1 the device must show; None not given
     # The SCALE_KEYS given, in that order, as pairs so the description stays hashable (frozen
     # all through): dict(device.scales) to look one up.
     scales: Tuple[Tuple[str, float], ...] = ()
@@ -390,6 +393,15 @@ def _device(reader: _Reader, name: str, where: str, given: _Keyed,
             reader.integer(path, restore, 0, MAX_RESTORE_SUBINDEX)
     fields['scales'] = tuple((key, _scale(reader, *given[key]))
                              for key in SCALE_KEYS if key in given)
+    if 'software_version' in given:
+        fields['software_version'] = reader.integer(*given['software_version'], 0,
+                                                    UNSIGNED32, text=True)
+    if 'software_file' in given:
+        fields['software_file'] = reader.location(*given['software_file'], reader.folder)
+        if 'software_version' not in given:
+            raise reader.fail(f'{where}.software_file', 'no software_version beside it: give '
+                              'the software id (0x1F56:1) the file holds, so that a boot '
+                              'knows when to download it')
     return DeviceDescription(**fields)
 
 

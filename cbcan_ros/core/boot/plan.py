@@ -98,6 +98,8 @@ class DevicePlan:
     mandatory: bool = False
     boot: bool = True                     # False: IGNORED, left alone
     pdos: bool = False                    # its PDOs are served: read again after the writes
+    software_version: Optional[int] = None  # 0x1F56:1 it must show (software_version)
+    software_file: str = ''               # downloaded when it differs (program_download.at_boot)
     checked: Dict[Tuple[int, int], bytes] = field(default_factory=dict)  # read back after
 
     @property
@@ -438,7 +440,16 @@ def device_plan(description, dictionary: Optional[ObjectDictionary], folder: str
         writes=tuple(writes), restore=restore, store=description.store_configuration,
         reset_communication=description.reset_communication, drive=drive,
         start=description.start, mandatory=description.mandatory, boot=description.boot,
-        pdos=pdos, checked=checked_values(writes))
+        pdos=pdos, checked=checked_values(writes),
+        software_version=description.software_version,
+        software_file=_software_file(description.software_file, where))
+
+
+def _software_file(path: str, where: str) -> str:
+    """Return ``path`` once it is known to be a readable file ('' stays '')."""
+    if path and not os.access(path, os.R_OK) or path and not os.path.isfile(path):
+        raise PlanError(f'{where}.software_file: {path} is not a readable file')
+    return path
 
 
 def pdo_configure_plan(node_id: int, dictionary: ObjectDictionary, master_id: int = 0,

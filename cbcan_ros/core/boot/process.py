@@ -10,10 +10,11 @@ calls, never races them, and passes the write protection) and its NMT command.
 from dataclasses import dataclass
 import struct
 import time
-from typing import Callable, Dict, List, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from .. import nmt
 from ..drives import cia402
+from ..program.download import ProgramDownload, ProgramLink, ProgramSettings, SOFTWARE_ID
 from ..sdo import abort_codes
 from ..sdo.requests import Access, MAX_TIMEOUT, SdoResult
 from .plan import (
@@ -66,6 +67,8 @@ class BootLink:
     - ``await_heartbeat(timeout)``: whether a heartbeat of this boot came (since it began, or
       since the boot-up of a reset it sent), waiting up to ``timeout`` s from now.
     - ``read_pdos()``: reads the device's PDO mapping again; returns why it failed, or ''.
+    - ``stream(access, answer_within, written)``: a program image, as
+      :class:`~cbcan_ros.core.program.download.ProgramLink` has it.
     """
 
     sdo: Callable[[Sequence[Access], float], List[SdoResult]]
@@ -74,6 +77,7 @@ class BootLink:
     await_boot_up: Callable[[Callable[[], str], float], bool]
     await_heartbeat: Callable[[float], bool]
     read_pdos: Callable[[], str]
+    stream: Callable[[Access, float, Callable[[int, bool], Optional[str]]], SdoResult]
 
 
 @dataclass(frozen=True)
@@ -117,9 +121,11 @@ class DeviceBoot:
     """
 
     def __init__(self, plan: DevicePlan, link: BootLink, sdo_timeout: float,
-                 boot_timeout: float, booted_itself: bool):
+                 boot_timeout: float, booted_itself: bool,
+                 program: ProgramSettings = ProgramSettings()):
         self.plan = plan
         self._link = link
+        self._program = program
         self._sdo_timeout = sdo_timeout
         self._boot_timeout = boot_timeout
         self._booted_itself = booted_itself
@@ -135,6 +141,7 @@ class DeviceBoot:
             self._reset(nmt.RESET_COMMUNICATION, 'reset communication', required=False)
         self._check_device_type(started)
         self._check_identity()
+        self._check_software()
         if plan.restore:
             self._restore()
         if self._configuration_unchanged():
@@ -217,6 +224,48 @@ class DeviceBoot:
                 raise BootFailed(letter, f'{key} (0x1018:{subindex}) is 0x{found:08X}, '
                                          f'0x{expected:08X} expected: not the device the bus '
                                          f'description names')
+
+    def _check_software(self) -> None:
+        """Check 0x1F56:1 against software_version; download software_file when allowed.
+
+        CiA 302-2: G when the device cannot tell (no 0x1F56, or no program download objects),
+        H when it differs and may not be updated here, I when the download failed.
+        """
+        plan = self.plan
+        if plan.software_version is None:
+            return
+        result = self._read(SOFTWARE_ID, 1)
+        if not result.success:
+            raise BootFailed('G', f'0x1F56:1 (software id) could not be read: {result.message}'
+                                  f'; software_version cannot be checked')
+        found = _number(result.data)
+        if found == plan.software_version:
+            return
+        differs = (f'software id (0x1F56:1) is 0x{found:08X}, software_version is '
+                   f'0x{plan.software_version:08X}')
+        if not plan.software_file:
+            raise BootFailed('H', f'{differs}, and no software_file is given to download')
+        if not self._program.at_boot:
+            raise BootFailed('H', f'{differs}: a boot downloads software_file only with the '
+                                  f'parameter program_download.at_boot true; or update it with '
+                                  f'~/program_download')
+        try:
+            with open(plan.software_file, 'rb') as file:
+                image = file.read()
+        except OSError as error:
+            raise BootFailed('I', f'{differs}; software_file {plan.software_file} cannot be '
+                                  f'read: {error.strerror}') from None
+        link = self._link
+        download = ProgramDownload(plan.node_id, image, 1, plan.software_version, True,
+                                   ProgramLink(link.sdo, link.stream, link.await_boot_up,
+                                               link.ended), self._program)
+        outcome = download.run()
+        self._check_ended()
+        if not outcome.success:
+            raise BootFailed('G' if outcome.refused else 'I',
+                             f'{differs}; downloading {plan.software_file}: {outcome.message}')
+        self._notes.append(f'software updated from 0x{found:08X} to '
+                           f'0x{plan.software_version:08X} ({plan.software_file})')
 
     def _restore(self) -> None:
         write = Write(RESTORE, self.plan.restore, struct.pack('<I', LOAD), 'restore')

@@ -21,6 +21,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from .. import nmt
 from ..bus import BusStatus, prompt
+from ..program.download import ProgramSettings
 from ..sdo.request_queue import answer, resolved
 from .plan import BootSettings, DevicePlan
 from .process import BootEnded, BootFailed, BootLink, DeviceBoot
@@ -87,7 +88,8 @@ class BootService:
 
     def __init__(self, network, settings: BootSettings, sdo_batch, nmt_command, pdo, monitor,
                  deadlines, sdo_timeout: float,
-                 drive_enabled: Callable[[int], bool] = lambda node_id: False):
+                 drive_enabled: Callable[[int], bool] = lambda node_id: False,
+                 sdo_stream=None, program: ProgramSettings = ProgramSettings()):
         self._network = network
         self._settings = settings
         self._sdo_batch = sdo_batch
@@ -97,6 +99,8 @@ class BootService:
         self._deadlines = deadlines
         self._sdo_timeout = sdo_timeout
         self._drive_enabled = drive_enabled
+        self._sdo_stream = sdo_stream
+        self._program = program
         self._devices: Dict[int, _Device] = {plan.node_id: _Device(plan)
                                              for plan in settings.plans}
         self._lock = threading.Condition()
@@ -274,7 +278,7 @@ class BootService:
     def _boot_once(self, device: _Device, generation: int, booted_itself: bool) -> None:
         plan = device.plan
         run = DeviceBoot(plan, self._link(device, generation), self._sdo_timeout,
-                         self._settings.boot_timeout, booted_itself)
+                         self._settings.boot_timeout, booted_itself, self._program)
         try:
             outcome = run.run()
         except BootEnded as ended:
@@ -462,7 +466,11 @@ class BootService:
         def read_pdos() -> str:
             return self._pdo.read_again(node_id).result()
 
-        return BootLink(sdo, nmt_send, ended, await_boot_up, await_heartbeat, read_pdos)
+        def stream(access, answer_within, written):
+            return self._sdo_stream(access, answer_within, written).result()
+
+        return BootLink(sdo, nmt_send, ended, await_boot_up, await_heartbeat, read_pdos,
+                        stream)
 
     @prompt
     def _on_heartbeat(self, can_id: int, data: bytearray, _timestamp: float) -> None:

@@ -21,10 +21,17 @@ asks of a client):
 3. The caller's deadline bounds the whole transfer, not each frame.
 4. The first abort wins: once the device aborted (or the client did), nothing more is sent
    and the answer carries that first code (canopen sends another request after a device's
-   abort in a segmented download and reports the device's answer to that one instead).
+   abort in a segmented download and reports the device's answer to that one instead). A
+   device may abort in the middle of a block download, while the client sends the block
+   without waiting: canopen sends the rest of the block, which the device answers with
+   0x05040001 each, and reports that. Here a device's abort counts from the transfer's first
+   request on (not only after the latest one), and no segment of a block goes out after it.
 5. Frames shorter than the 8 bytes CiA 301 prescribes for SDO are ignored (canopen let
    ``struct.error`` escape for them), and aborts name the transfer's index and subindex.
 6. A transfer can be cancelled from another thread (bus down, shutdown); it ends at once.
+   A long one (a program image) may be bounded by each answer instead (``answer_within``:
+   every answer due that long after the request it answers), so that only a device that
+   stops answering ends it.
 
 The transfer streams:
 
@@ -92,7 +99,9 @@ class StrictSdoClient(SdoClient):
         self._mux = (0, 0)
         self._kind: Optional[int] = None  # the initiating ccs; None before the initiation
         self._deadline = 0.0
+        self._answer_within: Optional[float] = None  # s after each request; None: _deadline
         self._sent_at = 0.0
+        self._began = 0.0  # when the transfer's first request went out
         self._sent_any = False
         self.initiated = False  # the device accepted the initiation of this transfer
         self._aborted: Optional[TransferAborted] = None
@@ -100,8 +109,12 @@ class StrictSdoClient(SdoClient):
         self._abort_on_cancel: Optional[int] = None
         self.ignored_frames = 0  # frames of this transfer that answered nothing we asked
 
-    def transfer(self, index: int, subindex: int, deadline: float, run: Callable[[], object]):
+    def transfer(self, index: int, subindex: int, deadline: float, run: Callable[[], object],
+                 answer_within: Optional[float] = None):
         """Run ``run()`` (canopen stream calls) as one transfer of ``index:subindex``.
+
+        ``deadline`` bounds the whole transfer; with ``answer_within`` each answer is due
+        that long after the latest request instead, and ``deadline`` is not used.
 
         It raises only :class:`TransferAborted` (the first abort of the transfer, whatever
         canopen raised after it), :class:`TransferCancelled` or ``BusDown``. Anything else
@@ -111,6 +124,7 @@ class StrictSdoClient(SdoClient):
             self._mux = (index, subindex)
             self._kind = None
             self._deadline = deadline
+            self._answer_within = answer_within
             self._sent_any = False
             self.initiated = False
             self.ignored_frames = 0
@@ -174,10 +188,15 @@ class StrictSdoClient(SdoClient):
     def send_request(self, request) -> None:
         """Send a request frame, unless the transfer has already ended."""
         with self._lock:
-            if self._kind is None:
+            first = self._kind is None
+            if first:
                 self._kind = request[0] >> 5
             self._sent_at = time.monotonic()
+            if first:
+                self._began = self._sent_at
         self._raise_if_ended()
+        if self._kind == _CCS_BLOCK_DOWNLOAD and self.initiated:
+            self._raise_device_abort()
         self.network.send_message(self.rx_cobid, request)
         self._sent_any = True
 
@@ -203,6 +222,8 @@ class StrictSdoClient(SdoClient):
 
     def _raise_if_ended(self) -> None:
         """Raise the end of the transfer, if it has ended; a cancellation aborts it once."""
+        if self._cancelled is None and self._aborted is None:
+            return  # before every frame of a block: no lock while nothing has ended
         with self._lock:
             ended = self._cancelled or self._aborted
             code, self._abort_on_cancel = self._abort_on_cancel, None
@@ -213,6 +234,24 @@ class StrictSdoClient(SdoClient):
         raise ended
 
     # The checks.
+
+    def _raise_device_abort(self) -> None:
+        """Raise the device's abort if one arrived during this transfer (a block under way).
+
+        The frames stay queued: what is not an abort is awaited as before.
+        """
+        responses = self.responses
+        if responses is None or not responses.queue:
+            return  # the usual case, looked at before every segment: nothing arrived
+        with responses.mutex:
+            code = next((struct.unpack_from('<L', frame, 4)[0] for arrived, frame
+                         in responses.queue if frame is not _Cancel and len(frame) >= 8
+                         and frame[0] == _ABORT and arrived > self._began), None)
+        if code is not None:
+            with self._lock:
+                if self._aborted is None:
+                    self._aborted = TransferAborted(code)
+                raise self._aborted
 
     def _send_abort(self, code: int) -> None:
         frame = bytearray(8)
@@ -241,7 +280,9 @@ class StrictSdoClient(SdoClient):
 
     def _await(self, expected: Callable[[bytes], Verdict], initiating: bool = False) -> bytes:
         while True:
-            remaining = self._deadline - time.monotonic()
+            deadline = (self._deadline if self._answer_within is None
+                        else self._sent_at + self._answer_within)
+            remaining = deadline - time.monotonic()
             try:
                 arrived, frame = self.responses.get(timeout=max(remaining, 0.0))
             except queue.Empty:
@@ -253,7 +294,8 @@ class StrictSdoClient(SdoClient):
             if frame is _Cancel:
                 self._raise_if_ended()
                 continue
-            if arrived <= self._sent_at or len(frame) < 8:
+            if len(frame) < 8 or arrived <= (self._began if frame[0] == _ABORT
+                                             else self._sent_at):
                 self.ignored_frames += 1
                 continue
             if frame[0] == _ABORT:

@@ -116,6 +116,32 @@ class SdoChannel:
             return results
         return self._submit(run, timeout, len(accesses))
 
+    def stream(self, access: Access, answer_within: float,
+               written: Callable[[int, bool], Optional[str]]) -> 'Future[SdoResult]':
+        """Queue a long write (a program image); block transfer first, whatever the parameter.
+
+        No deadline bounds the whole: it waits ``answer_within`` s at most in the queue, and
+        the device must answer each segment (each block) within ``answer_within`` s, so only
+        a device that stops answering ends it, however large the data. ``written(bytes so
+        far, block)`` (block: by block transfer, else segmented) is called after each
+        segment; a reason it returns ends the transfer there with an abort 0x08000021 (local
+        control) on the bus.
+        """
+        index, subindex = access.index, access.subindex
+
+        def each_segment(position: int, block: bool) -> None:
+            reason = written(position, block)
+            if reason:
+                raise self._client.fail(abort_codes.LOCAL_CONTROL, reason)
+
+        def run(deadline: float) -> SdoResult:
+            return self._transfer(
+                index, subindex, deadline,
+                lambda block: download(self._client, index, subindex, access.data, block,
+                                       lambda position: each_segment(position, block)),
+                block_first=True, answer_within=answer_within)
+        return self._submit(run, answer_within, None)
+
     def fail_all(self, reason: str, abort_code: Optional[int] = None) -> None:
         """Answer every queued request with ``reason`` and end the running transfer."""
         for job in self._jobs.take_all():
@@ -222,12 +248,19 @@ class SdoChannel:
                 return result
 
     def _transfer(self, index: int, subindex: int, deadline: float,
-                  transfer: Callable[[bool], Optional[bytes]]) -> SdoResult:
+                  transfer: Callable[[bool], Optional[bytes]],
+                  block_first: Optional[bool] = None,
+                  answer_within: Optional[float] = None) -> SdoResult:
+        """Run ``transfer``; ``block_first``: try block transfer (None: ``sdo.block_transfer``).
+
+        ``answer_within``: each answer due that long after its request, not by ``deadline``.
+        """
         def attempt(block: bool) -> Optional[bytes]:
-            return self._client.transfer(index, subindex, deadline, lambda: transfer(block))
+            return self._client.transfer(index, subindex, deadline, lambda: transfer(block),
+                                         answer_within)
 
         def run() -> Optional[bytes]:
-            if self._block:
+            if self._block if block_first is None else block_first:
                 try:
                     return attempt(True)
                 except TransferAborted as refusal:

@@ -36,12 +36,14 @@ def check_size(size: int, max_size: int) -> None:
         raise ObjectTooLarge(f'the object holds {size} bytes, max_size is {max_size}')
 
 
-def _write_all(stream, data: bytes) -> None:
+def _write_all(stream, data: bytes, written: Optional[Callable[[int], None]] = None) -> None:
     # A raw canopen stream takes at most 7 bytes per write() (one segment): loop.
     view = memoryview(data)
     position = 0
     while position < len(data):
         position += stream.write(view[position:position + 7])
+        if written is not None:
+            written(position)
 
 
 def _close_after_failure(client: StrictSdoClient, stream) -> None:
@@ -99,15 +101,19 @@ def _read_all(client: StrictSdoClient, stream, max_size: int) -> bytes:
 
 
 def download(client: StrictSdoClient, index: int, subindex: int, data: bytes,
-             block: bool) -> None:
-    """Write an object (expedited, segmented or block)."""
+             block: bool, written: Optional[Callable[[int], None]] = None) -> None:
+    """Write an object (expedited, segmented or block).
+
+    ``written(bytes so far)`` is called after each segment went out (a block's last one once
+    the device acknowledged the block); what it raises ends the transfer with an abort.
+    """
     if block:
         stream = client.open(index, subindex, 'wb', buffering=0, size=len(data),
                              block_transfer=True)
     else:
         stream = DownloadStream(client, index, subindex, size=len(data))
     try:
-        _write_all(stream, data)
+        _write_all(stream, data, written)
     except BaseException:
         _close_after_failure(client, stream)
         raise

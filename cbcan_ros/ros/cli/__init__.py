@@ -14,6 +14,7 @@ Examples (the gateway started by ``make run`` is ``/can0/cbcan``)::
     cbcan_cli states
     cbcan_cli boot 5                                      # check, configure, start node 5 again
     cbcan_cli boot-states                                 # how each device's last boot ended
+    cbcan_cli program-download 5 firmware.bin --expect 0x00010203   # new firmware, CiA 302-3
     cbcan_cli --gateway /robot/can1/cbcan mailbox cbcan 0x0001 ...
     cbcan_cli sdo-batch r:5:0x1000 w:5:0x2002:0:78563412 r:3:0x1008
     cbcan_cli sdo-batch --file accesses.txt
@@ -37,7 +38,8 @@ The file is the gateway's parameter ``node_<id>.eds`` (asked of the running gate
 Exit status: 0 on success, 1 when the gateway answered with an error (an SDO abort, a
 refused request) or the answer does not fit the value type, 2 when there is no usable
 gateway (not running, no answer) or the command line is wrong (an unknown name, a value that
-does not fit its type); 130 when Ctrl-C ended it (a move is cancelled first).
+does not fit its type); 130 when Ctrl-C ended it (a move or a program download is cancelled
+first).
 """
 
 import argparse
@@ -46,14 +48,14 @@ from typing import Optional, Sequence
 
 from ..client import DEFAULT_GATEWAY, DEFAULT_WAIT, RequestFailed
 from ..service_caller import GatewayUnavailable
-from . import boot, drive, lss, mailbox, move, nmt, pdo, raw, sdo
+from . import boot, drive, lss, mailbox, move, nmt, pdo, program, raw, sdo
 from .arguments import positive_seconds
 from .errors import print_refusal, UsageError
 from .standalone_client import Client
 
 # The command groups, each a module with add_commands(commands), in the order --help lists
 # their commands.
-COMMAND_GROUPS = (sdo, nmt, boot, mailbox, lss, pdo, drive, move, raw)
+COMMAND_GROUPS = (sdo, nmt, boot, program, mailbox, lss, pdo, drive, move, raw)
 
 
 def build_parser() -> argparse.ArgumentParser:

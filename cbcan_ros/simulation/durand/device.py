@@ -100,6 +100,9 @@ class DurandDevice:
 
     #: Seconds of silence after which a transfer a master left open is dropped.
     SDO_SERVER_TIMEOUT = 1.0
+    #: Objects that are commands (0x1010 save, 0x1011 load): they hold no value of their
+    #: own, so a boot restores none and "save" stores none.
+    COMMANDS: Tuple[int, ...] = (STORE_INDEX, RESTORE_INDEX)
 
     def __init__(self, node_id: int, interface: str = 'virtual', channel: str = 'cbcan',
                  bus_options: Optional[Dict[str, str]] = None, slow_read_delay: float = 0.4,
@@ -301,7 +304,7 @@ class DurandDevice:
         od = self.node.object_dictionary
         self._saved = {(index, subindex): od.read(index, subindex)
                        for index, obj in od if index not in NOT_STORED
-                       and index not in (STORE_INDEX, RESTORE_INDEX)
+                       and index not in self.COMMANDS
                        for subindex, variable in ([(0, obj)] if isinstance(obj, Variable)
                                                   else list(obj))
                        if variable.access in ('rw', 'wo') and od.has_value(index, subindex)}
@@ -325,8 +328,7 @@ class DurandDevice:
         # Nor a PDO: a device taking a reset sends nothing more before its boot-up, while
         # restoring its defaults here would send every TPDO of an operational one.
         self.node.nmt.set_state(StateEnum.STOPPED)
-        # 0x1010 and 0x1011 are commands: they hold no value of their own to restore.
-        restore_defaults(od, clear, keep=(HEARTBEAT_INDEX, STORE_INDEX, RESTORE_INDEX))
+        restore_defaults(od, clear, keep=(HEARTBEAT_INDEX, *self.COMMANDS))
         heartbeat = HEARTBEAT_DEFAULT
         for (index, subindex), value in self._saved.items():
             if index == HEARTBEAT_INDEX:

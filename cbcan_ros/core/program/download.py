@@ -1,0 +1,360 @@
+"""One program download (CiA 302-3), step by step, and what it leaves the device in.
+
+The steps, each a phase of the feedback: STOPPING (0x1F51:n = 0), CLEARING (0x1F51:n = 3,
+then 0x1F57:n until the flash is no longer busy), DOWNLOADING (the image into the DOMAIN
+0x1F50:n, block transfer with CRC where the device has it, segmented otherwise), FLASHING
+(0x1F57:n until it is done, or reports an error), STARTING (0x1F51:n = 1, then the device's
+boot-up message) and CHECKING (0x1F56:n, the software identification). Each phase has a
+timeout that fits it: an SDO answer, the flash's own time, the device's restart.
+
+Everything goes through a :class:`ProgramLink`: the gateway's SDO channels (so a download
+queues behind a user's SDO calls to the same device and never races them), and its boot-up
+watch. The ROS action and the boot process (``software_file``) give their own links.
+"""
+
+from dataclasses import dataclass
+import time
+from typing import Callable, List, Optional, Sequence
+
+from ..sdo import abort_codes
+from ..sdo.requests import Access, MAX_TIMEOUT, SdoResult
+
+PROGRAM_DATA = 0x1F50
+PROGRAM_CONTROL = 0x1F51
+SOFTWARE_ID = 0x1F56
+FLASH_STATUS = 0x1F57
+STOP, START, CLEAR = 0, 1, 3  # what 0x1F51:n takes (CiA 302-3; 2 is reset)
+
+STOPPING, CLEARING, DOWNLOADING, FLASHING, STARTING, CHECKING = (
+    'STOPPING', 'CLEARING', 'DOWNLOADING', 'FLASHING', 'STARTING', 'CHECKING')
+PHASES = (STOPPING, CLEARING, DOWNLOADING, FLASHING, STARTING, CHECKING)
+
+# 0x1F57:n (CiA 302-3): bit 0 set while the flash is busy, bits 1..7 an error code.
+FLASH_BUSY = 0x01
+FLASH_ERRORS = {1: 'no valid program', 2: 'data format unknown',
+                3: 'data format error or CRC error', 4: 'flash not cleared before write',
+                5: 'flash write error', 6: 'general address error',
+                7: 'flash secured (write access forbidden)'}
+FLASH_POLL = 0.05  # s between two reads of 0x1F57 while the flash is busy
+FEEDBACK_PERIOD = 0.1  # s: the download's progress is told at most this often
+NO_SUCH_OBJECT = (abort_codes.OBJECT_DOES_NOT_EXIST, abort_codes.SUBINDEX_NOT_EXIST)
+MAX_PROGRAM = 254  # 0x1F50..0x1F57 sub-indices 1..254; 0 holds the count
+NOTHING_SENT = 'nothing was sent'
+
+
+@dataclass(frozen=True)
+class ProgramSettings:
+    """The timeouts of the phases (s) and whether a boot may download (parameters)."""
+
+    answer_timeout: float = 0.5   # an SDO answer; each segment and block of the image
+    flash_timeout: float = 30.0   # CLEARING and FLASHING: the flash's own time
+    start_timeout: float = 10.0   # STARTING: from 0x1F51 = 1 to the device's boot-up
+    at_boot: bool = False         # program_download.at_boot: software_file at a boot
+
+
+@dataclass(frozen=True)
+class Progress:
+    """What a running download is doing (the action's feedback)."""
+
+    phase: str
+    bytes_sent: int = 0
+    bytes_total: int = 0
+    bytes_per_second: float = 0.0
+
+
+@dataclass(frozen=True)
+class ProgramResult:
+    """How a download ended (the action's result)."""
+
+    success: bool
+    message: str
+    software_id: int = 0    # 0x1F56:n read at the end; 0 not read
+    abort_code: int = 0     # the SDO abort that ended it; 0 none
+    flash_status: int = 0   # 0x1F57:n (its low byte) last read; 0 not read or no error
+    refused: bool = False   # refused before anything was written
+
+
+@dataclass
+class ProgramLink:
+    """What a download may do on the bus, for one device.
+
+    - ``sdo(accesses, timeout)``: their results in order; stops sending once ``ended()``.
+    - ``stream(access, answer_within, written)``: the image, each answer within
+      ``answer_within`` s; ``written(bytes so far, block)`` (block transfer, else
+      segmented) returns why to stop, or None.
+    - ``await_boot_up(send, timeout)``: calls ``send()`` (returns why it failed, or ''), then
+      whether the device's boot-up came within ``timeout`` s.
+    - ``ended()``: why the download must end now (cancel, shutdown, bus down), or ''.
+    """
+
+    sdo: Callable[[Sequence[Access], float], List[SdoResult]]
+    stream: Callable[[Access, float, Callable[[int, bool], Optional[str]]], SdoResult]
+    await_boot_up: Callable[[Callable[[], str], float], bool]
+    ended: Callable[[], str]
+
+
+class _Failed(Exception):
+    def __init__(self, message: str, abort_code: int = 0, refused: bool = False):
+        super().__init__(message)
+        self.message = message
+        self.abort_code = abort_code
+        self.refused = refused
+
+
+def flash_status_text(status: int) -> str:
+    """Return what a 0x1F57 value says: busy, done, or its error."""
+    error = (status >> 1) & 0x7F
+    if error:
+        meaning = FLASH_ERRORS.get(error, 'manufacturer specific' if error >= 64
+                                   else 'reserved code')
+        return f'0x{status:02X}: error {error}, {meaning}'
+    return f'0x{status:02X}: {"busy" if status & FLASH_BUSY else "no error"}'
+
+
+def _number(data: bytes) -> int:
+    return int.from_bytes(bytes(data[:4]), 'little')
+
+
+class ProgramDownload:
+    """One download of ``image`` into program ``program`` of ``node_id``.
+
+    ``run()`` returns a :class:`ProgramResult`, never raises; ``feedback(Progress)`` is called
+    on each phase and, while downloading, every ``FEEDBACK_PERIOD`` at most.
+    ``expected_software_id``: what 0x1F56 must read afterwards (0: not checked); ``start``:
+    False leaves the new program written, not started.
+    """
+
+    def __init__(self, node_id: int, image: bytes, program: int, expected_software_id: int,
+                 start: bool, link: ProgramLink, settings: ProgramSettings,
+                 feedback: Callable[[Progress], None] = lambda progress: None):
+        self.node_id = node_id
+        self._image = image
+        self._program = program
+        self._expected = expected_software_id
+        self._start = start
+        self._link = link
+        self._settings = settings
+        self._feedback = feedback
+        self.phase = ''
+        self._sent = 0
+        self._flash = 0
+        self._has_flash_status = True
+        self._software_id = 0
+        self._transfer = ''
+        n = program
+        self._left = 'unchanged'  # until the first phase begins
+        self._states = {  # what the device is left in once a phase has begun
+            STOPPING: f'program {n} perhaps stopped (0x1F51:{n} = 0 sent): start it again '
+                      f'(0x1F51:{n} = 1) or download again',
+            CLEARING: f'program {n} stopped and perhaps cleared, not started: download again',
+            DOWNLOADING: f'program {n} cleared and partly written, not started: download '
+                         f'again',
+            FLASHING: f'program {n} written, flashing not confirmed, not started: download '
+                      f'again',
+            STARTING: f'program {n} written and told to start (0x1F51:{n} = 1); its '
+                      f'start was not seen: look at the device (a power cycle may be needed)',
+            CHECKING: f'program {n} written and started',
+        }
+
+    def run(self) -> ProgramResult:
+        """Run every phase; return how it ended."""
+        try:
+            self._check_objects()
+            self._step(STOPPING, PROGRAM_CONTROL, STOP, self._settings.answer_timeout)
+            self._step(CLEARING, PROGRAM_CONTROL, CLEAR, self._settings.flash_timeout)
+            self._await_flash(CLEARING)
+            self._download()
+            self._begin(FLASHING)
+            self._await_flash(FLASHING)
+            if not self._start:
+                return self._result(True, f'{self._done_text()}; not started (start: false): '
+                                          f'start it with 0x1F51:{self._program} = 1')
+            self._start_program()
+            self._check()
+        except _Failed as failure:
+            return self._failed(failure)
+        return self._result(True, f'{self._done_text()}; started, software id '
+                                  f'0x{self._software_id:08X}')
+
+    # The phases.
+
+    def _check_objects(self) -> None:
+        """Refuse a device without 0x1F50/0x1F51 (0x1F56 when checked): read before writing.
+
+        0x1F50 is read with room for one byte: a device answers with the image's size first,
+        so whatever it holds costs one round trip (or it says write-only: it is there).
+        """
+        n = self._program
+        reads = [Access(self.node_id, PROGRAM_CONTROL, n), Access(self.node_id, PROGRAM_DATA, n,
+                                                                   max_size=1),
+                 Access(self.node_id, SOFTWARE_ID, n), Access(self.node_id, FLASH_STATUS, n)]
+        # One at a time: a caller's batch may stop at the first failure, and 0x1F50 fails.
+        results = [self._sdo([read], self._settings.answer_timeout)[0] for read in reads]
+        reason = self._link.ended()
+        if reason:
+            raise _Failed(f'{reason}; {NOTHING_SENT}', refused=True)
+        for access, result in zip(reads[:2], results[:2], strict=True):
+            if result.abort_code in NO_SUCH_OBJECT:
+                raise _Failed(f'node {self.node_id} has no 0x{access.index:04X}:{n} '
+                              f'({result.message}): it offers no program download (CiA '
+                              f'302-3) for program {n}; {NOTHING_SENT}', result.abort_code,
+                              refused=True)
+            if result.abort_code == abort_codes.TIMEOUT or not result.abort_code and \
+                    not result.success:
+                raise _Failed(f'node {self.node_id} did not answer reading '
+                              f'0x{access.index:04X}:{n}: {result.message}; {NOTHING_SENT}',
+                              result.abort_code, refused=True)
+        if self._expected and not results[2].success:
+            raise _Failed(f'expected_software_id 0x{self._expected:08X} cannot be checked: '
+                          f'node {self.node_id} does not give 0x1F56:{n} ({results[2].message});'
+                          f' give 0 or leave it out; {NOTHING_SENT}', results[2].abort_code,
+                          refused=True)
+        self._has_flash_status = results[3].success
+
+    def _begin(self, phase: str) -> None:
+        self._ended()
+        self.phase = phase
+        self._left = self._states[phase]
+        self._feedback(Progress(phase, self._sent, len(self._image)))
+
+    def _step(self, phase: str, index: int, value: int, timeout: float) -> None:
+        self._begin(phase)
+        self._write(index, value, timeout)
+
+    def _write(self, index: int, value: int, timeout: float) -> SdoResult:
+        access = Access(self.node_id, index, self._program, True, bytes([value]))
+        result = self._sdo([access], timeout)[0]
+        if not result.success:
+            self._ended()
+            raise _Failed(f'writing {value} to 0x{index:04X}:{self._program} failed: '
+                          f'{result.message}', result.abort_code)
+        return result
+
+    def _await_flash(self, phase: str) -> None:
+        """Read 0x1F57 until the flash is no longer busy; fail on its error, or past its time."""
+        if not self._has_flash_status:
+            return  # the device answers the write once done, or tells nothing
+        timeout = self._settings.flash_timeout
+        deadline = time.monotonic() + timeout
+        while True:
+            self._ended()
+            result = self._sdo([Access(self.node_id, FLASH_STATUS, self._program)],
+                               self._settings.answer_timeout)[0]
+            if not result.success:
+                self._ended()
+                raise _Failed(f'0x1F57:{self._program} (flash status) could not be read: '
+                              f'{result.message}', result.abort_code)
+            self._flash = _number(result.data) & 0xFF
+            if (self._flash >> 1) & 0x7F:
+                raise _Failed(f'the device reports a flash error in 0x1F57:{self._program}: '
+                              f'{flash_status_text(self._flash)}')
+            if not self._flash & FLASH_BUSY:
+                return
+            if time.monotonic() >= deadline:
+                raise _Failed(f'the flash was still busy {timeout:g} s after {phase} began '
+                              f'(0x1F57:{self._program} = 0x{self._flash:02X}; parameter '
+                              f'program_download.flash_timeout)')
+            time.sleep(FLASH_POLL)
+
+    def _download(self) -> None:
+        self._begin(DOWNLOADING)
+        total = len(self._image)
+        began = time.monotonic()
+        told = [began]
+        kind = ['']
+
+        def written(position: int, block: bool) -> Optional[str]:
+            self._sent = position
+            kind[0] = ('block transfer' if block else 'expedited transfer' if total <= 4
+                       else 'segmented transfer')
+            now = time.monotonic()
+            if now - told[0] >= FEEDBACK_PERIOD or position == total:
+                told[0] = now
+                self._feedback(Progress(DOWNLOADING, position, total,
+                                        position / max(now - began, 1e-6)))
+            return self._link.ended() or None
+
+        result = self._link.stream(Access(self.node_id, PROGRAM_DATA, self._program, True,
+                                          self._image),
+                                   self._settings.answer_timeout, written)
+        if not result.success:
+            reason = self._link.ended()
+            if reason and result.abort_code in (abort_codes.LOCAL_CONTROL,
+                                                abort_codes.DEVICE_STATE, 0):
+                raise _Failed(reason, result.abort_code)
+            raise _Failed(f'the device ended the download at byte {self._sent} of {total}: '
+                          f'{result.message}', result.abort_code)
+        self._sent = total
+        elapsed = max(time.monotonic() - began, 1e-6)
+        self._transfer = (f'{kind[0]}, {total} bytes in {elapsed:.2f} s, '
+                          f'{total / elapsed / 1024:.1f} KiB/s')
+
+    def _start_program(self) -> None:
+        self._begin(STARTING)
+        access = Access(self.node_id, PROGRAM_CONTROL, self._program, True, bytes([START]))
+
+        def send() -> str:
+            result = self._sdo([access], self._settings.answer_timeout)[0]
+            # A device may jump into its new program without answering: its boot-up tells.
+            if result.success or result.abort_code == abort_codes.TIMEOUT:
+                return ''
+            return f'writing 1 to 0x1F51:{self._program} failed: {result.message}'
+
+        problems = []
+
+        def send_once() -> str:
+            problems.append(send())
+            return problems[-1]
+
+        came = self._link.await_boot_up(send_once, self._settings.start_timeout)
+        if problems and problems[-1]:
+            self._ended()
+            raise _Failed(problems[-1])
+        if not came:
+            self._ended()
+            raise _Failed(f'no boot-up message within {self._settings.start_timeout:g} s '
+                          f'after the start (parameter program_download.start_timeout): the '
+                          f'new program did not come up')
+
+    def _check(self) -> None:
+        self._begin(CHECKING)
+        result = self._sdo([Access(self.node_id, SOFTWARE_ID, self._program)],
+                           self._settings.answer_timeout)[0]
+        if not result.success:
+            if self._expected:
+                raise _Failed(f'0x1F56:{self._program} (software id) could not be read after '
+                              f'the start: {result.message}', result.abort_code)
+            return
+        self._software_id = _number(result.data)
+        if self._expected and self._software_id != self._expected:
+            self._left = (f'program {self._program} started, running software id '
+                          f'0x{self._software_id:08X}')
+            raise _Failed(f'software id (0x1F56:{self._program}) is 0x{self._software_id:08X}, '
+                          f'0x{self._expected:08X} expected: the device runs another program '
+                          f'than the one expected')
+
+    # Helpers.
+
+    def _sdo(self, accesses: Sequence[Access], timeout: float) -> List[SdoResult]:
+        return self._link.sdo(accesses, min(MAX_TIMEOUT, timeout))
+
+    def _ended(self) -> None:
+        reason = self._link.ended()
+        if reason:
+            raise _Failed(reason)
+
+    def _done_text(self) -> str:
+        kind = f' ({self._transfer})' if self._transfer else ''
+        return f'program {self._program} written{kind}'
+
+    def _failed(self, failure: _Failed) -> ProgramResult:
+        if failure.refused:
+            return self._result(False, failure.message, failure.abort_code, refused=True)
+        where = f'{self.phase} ' if self.phase else ''
+        return self._result(False, f'{where}failed: {failure.message}; the device is left '
+                                   f'{self._left}', failure.abort_code)
+
+    def _result(self, success: bool, message: str, abort_code: int = 0,
+                refused: bool = False) -> ProgramResult:
+        return ProgramResult(success, message, self._software_id, abort_code, self._flash,
+                             refused)
