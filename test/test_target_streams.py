@@ -41,7 +41,9 @@ from test_drive_safety import (
     VELOCITY,
 )
 
+from cbcan_ros.core.bus import BusStatus
 from cbcan_ros.core.drives.cycle import FeedbackCycle
+from cbcan_ros.core.pdo.sync import SyncProducer
 from cbcan_ros.msg import PdoEntry
 from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
 from cbcan_ros.simulation.durand.drive_pdos import drive_pdos as layout_pdos
@@ -471,3 +473,42 @@ def test_a_mode_change_mid_stream_ends_the_stream_of_the_mode_before(rig):
     velocities = [m for m in axis.recorder.messages(since) if COMBINED.velocity(m)]
     assert not velocities, f'the CSV stream repeated in CSP: {shown(velocities)}'
     axis.drive_reaches(lambda drive: drive.velocity == 0, 'the drive holding in CSP')
+
+
+# 6. The SYNC schedule the streams are timed on.
+
+class _Supervisor:
+    """Starts a SYNC task that does nothing: the test tells the producer what it heard."""
+
+    def add_listener(self, _listener) -> None:
+        pass
+
+    def send_periodic(self, _frames, _period):
+        return type('Task', (), {'stop': lambda self: None})()
+
+
+class _Network:
+    def subscribe(self, *_) -> None:
+        pass
+
+    def unsubscribe(self, *_) -> None:
+        pass
+
+
+def test_the_sync_schedule_moves_onto_the_syncs_heard_back():
+    # python-can's thread starts its own schedule when it first runs, milliseconds after the
+    # task was started on a busy machine: a stream timed on the start would race the SYNC.
+    period = 0.01
+    producer = SyncProducer(_Supervisor(), _Network(), period)
+    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
+    started = producer._grid_start
+    producer._on_sync_heard(0x80, bytearray(), started + 0.0034)  # 3.4 ms late, as heard
+    moved = producer._grid_start
+    assert abs(moved - (started + 0.0034)) < 1e-9, 'the schedule stayed where it started'
+    producer._on_sync_heard(0x80, bytearray(), moved + 5 * period + 0.0002)  # later: kept
+    assert producer._grid_start == moved
+    producer._on_sync_heard(0x80, bytearray(), moved + 9 * period - 0.0003)  # heard earlier
+    assert abs(producer._grid_start - (moved - 0.0003)) < 1e-9
+    following = producer.next_point(0.0)
+    assert abs((following - producer._grid_start) / period % 1) < 1e-6
+    producer.stop()

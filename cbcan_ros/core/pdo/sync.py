@@ -75,6 +75,7 @@ class SyncProducer:
         self._lock = threading.Condition()
         self._task = None
         self._grid_start = 0.0
+        self._grid_heard = False  # the grid was moved onto a SYNC of the task heard back
         self._starts = 0
         self._closing = False
         self._after_sync: List[Callable[[], None]] = []
@@ -186,6 +187,7 @@ class SyncProducer:
             LOGGER.warning('SYNC could not be started: %s', error)
             return False
         self._grid_start = grid_start
+        self._grid_heard = False
         self._starts += 1
         return True
 
@@ -233,7 +235,25 @@ class SyncProducer:
             if self._last_heard is not None:
                 self._intervals.append(timestamp - self._last_heard)
             self._last_heard = timestamp
+            if self._task is not None:
+                self._follow_heard(timestamp)
 
+    def _follow_heard(self, stamp: float) -> None:
+        """Move the grid onto the SYNCs heard back (lock held).
+
+        python-can's thread starts its own grid when it first runs, which on a busy machine
+        is milliseconds after the task was started: every SYNC then leaves that much after
+        its grid point, and a stream's frame timed on the grid could race it. The first SYNC
+        heard moves the grid onto it; a later one heard earlier in the cycle (less delayed on
+        its way in) moves it back to that. Adapters that do not echo their own frames leave
+        the grid where the task was started.
+        """
+        late = (stamp - self._grid_start) % self.period
+        if not self._grid_heard:
+            self._grid_start += late
+            self._grid_heard = True
+        elif late > self.period / 2:
+            self._grid_start -= self.period - late
 
 def _run_all(callbacks: List[Callable[[], None]]) -> None:
     for callback in callbacks:
