@@ -45,6 +45,7 @@ import time
 from typing import Dict, List, Tuple
 
 from bench_drives import (
+    bench_session,
     Caller,
     canopen_network,
     NodeProcess,
@@ -53,16 +54,13 @@ from bench_drives import (
     UdpBus,
     wait_until,
 )
-from bench_report import machine_info
 from bench_sdo import Child, ChildFailed
 from bench_util import (
     EDS,
-    logs_to,
     OUTPUT,
     proc_cpu_seconds,
     proc_udp_drops,
     progress,
-    ros_of_its_own,
     write_report,
 )
 
@@ -495,16 +493,9 @@ def main(argv=None) -> int:
                         help='folder of boot.md, boot.json and the logs (default %(default)s)')
     args = parser.parse_args(argv)
     args.repetitions = 4 if args.quick else 12
-    logs_to(os.path.join(args.output, 'boot_logs.txt'))
-    ros_of_its_own()
-    import rclpy
-    machine = machine_info()
-    started = time.monotonic()
-    rclpy.init()
-    caller = Caller()
     rows: List[Dict] = []
     problems: List[str] = []
-    try:
+    with bench_session(args.output, 'boot', args.quick) as (caller, machine):
         for answer_delay in ANSWER_DELAYS:
             try:
                 rows.append(measure(args, caller, answer_delay))
@@ -512,16 +503,6 @@ def main(argv=None) -> int:
                 problems.append(f'boot, devices answering after {answer_delay * 1e3:g} ms: '
                                 f'{error}')
                 progress(f'boot failed: {error}')
-    except KeyboardInterrupt:
-        problems.append('interrupted (Ctrl-C)')
-        progress('interrupted')
-    finally:
-        Child.stop_all()
-        caller.close()
-        rclpy.try_shutdown()
-    machine['load_after'] = ' '.join(f'{v:.2f}' for v in os.getloadavg())
-    machine['duration_s'] = round(time.monotonic() - started, 1)
-    machine['quick'] = args.quick
     text = table(rows)
     described = ', '.join(f'{key}: {value}' for key, value in machine.items())
     write_report(args.output, 'boot', 'Boot configuration benchmark (make bench)',

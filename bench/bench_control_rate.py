@@ -43,6 +43,7 @@ from typing import Dict, List, Optional
 from bench_drives import (
     _stats,
     _until_no_sdo,
+    bench_session,
     Caller,
     gateway_ready,
     NodeProcess,
@@ -50,9 +51,8 @@ from bench_drives import (
     UdpBus,
     wait_until,
 )
-from bench_report import machine_info
 from bench_sdo import Child, ChildFailed
-from bench_util import logs_to, OUTPUT, percentile, proc_cpu_seconds, progress, ros_of_its_own
+from bench_util import OUTPUT, percentile, proc_cpu_seconds, progress
 
 START_TIMEOUT = 60.0
 CSP = 8
@@ -360,26 +360,15 @@ def main(argv=None) -> int:
     parser.add_argument('--output', default=OUTPUT, help='folder of the report')
     args = parser.parse_args(argv)
     args.seconds = 10.0 if args.quick else 60.0
-    os.makedirs(args.output, exist_ok=True)
-    logs_to(os.path.join(args.output, 'control_rate_logs.txt'))
-    ros_of_its_own()
-    import rclpy
-    machine = machine_info()
-    rclpy.init()
-    caller = Caller()
     rows: Dict[str, Dict] = {}
     problems: List[str] = []
-    try:
+    with bench_session(args.output, 'control_rate', args.quick) as (caller, machine):
         for hertz in args.rates:
             try:
                 rows[hertz] = row(args, caller, hertz)
             except (RuntimeError, ChildFailed) as error:
                 problems.append(f'{hertz} Hz: {error}')
                 progress(f'control rate: {hertz} Hz failed: {error}')
-    finally:
-        Child.stop_all()
-        caller.close()
-        rclpy.try_shutdown()
     text = table(rows)
     described = ', '.join(f'{key}: {value}' for key, value in machine.items())
     with open(os.path.join(args.output, 'control_rate.md'), 'w') as file:

@@ -34,6 +34,7 @@ the node's CPU is the gateway's alone; this process, the ROS caller and python c
 """
 
 import argparse
+import contextlib
 import json
 import os
 import random
@@ -90,6 +91,37 @@ def start_helper(name: str, mode: str, bus: UdpBus, *extra: str) -> Child:
         print(child.output(), file=sys.stderr)
         raise
     return child
+
+
+@contextlib.contextmanager
+def bench_session(output: str, name: str, quick: bool):
+    """Run a bench script's measurements as a ROS program; yield ``(caller, machine)``.
+
+    Its nodes' logs go to ``<output>/<name>_logs.txt``, its processes to a ROS domain of
+    their own; rclpy is started with a :class:`Caller`. Ctrl-C ends the measurements (the
+    report then says so in ``machine['interrupted']``); on the way out every child process
+    is stopped, rclpy shut down, and the load after, the duration and ``quick`` are added to
+    ``machine`` (this machine, as the report shows it).
+    """
+    logs_to(os.path.join(output, f'{name}_logs.txt'))
+    ros_of_its_own()
+    import rclpy
+    machine = machine_info()
+    started = time.monotonic()
+    rclpy.init()
+    caller = Caller()
+    try:
+        yield caller, machine
+    except KeyboardInterrupt:
+        machine['interrupted'] = 'Ctrl-C: the rows after that point are missing'
+        progress('interrupted')
+    finally:
+        Child.stop_all()
+        caller.close()
+        rclpy.try_shutdown()
+        machine['load_after'] = ' '.join(f'{v:.2f}' for v in os.getloadavg())
+        machine['duration_s'] = round(time.monotonic() - started, 1)
+        machine['quick'] = quick
 
 
 class NodeProcess:
@@ -724,16 +756,9 @@ def main(argv=None) -> int:
     args.repetitions = 10 if args.quick else 30
     args.samples = 100 if args.quick else 300
     args.seconds = 3.0 if args.quick else 8.0
-    logs_to(os.path.join(args.output, 'drives_logs.txt'))
-    ros_of_its_own()
-    import rclpy
-    machine = machine_info()
-    started = time.monotonic()
-    rclpy.init()
-    caller = Caller()
     rows: Dict[str, Dict] = {}
     problems: List[str] = []
-    try:
+    with bench_session(args.output, 'drives', args.quick) as (caller, machine):
         measures = []
         if {'enable', 'target'} & set(args.rows):
             measures.append(('enable and target',
@@ -749,16 +774,6 @@ def main(argv=None) -> int:
             except (RuntimeError, ChildFailed) as error:
                 problems.append(f'{name}: {error}')
                 progress(f'drives: {name} failed: {error}')
-    except KeyboardInterrupt:
-        problems.append('interrupted (Ctrl-C): the rows after that point are missing')
-        progress('interrupted')
-    finally:
-        Child.stop_all()
-        caller.close()
-        rclpy.try_shutdown()
-    machine['load_after'] = ' '.join(f'{v:.2f}' for v in os.getloadavg())
-    machine['duration_s'] = round(time.monotonic() - started, 1)
-    machine['quick'] = args.quick
     print(report(rows, problems, machine, args.output))
     for line in notes(rows) + problems:
         print(line)

@@ -31,6 +31,7 @@ from typing import Dict, List
 import zlib
 
 from bench_drives import (
+    bench_session,
     Caller,
     canopen_network,
     NodeProcess,
@@ -39,9 +40,8 @@ from bench_drives import (
     UdpBus,
     wait_until,
 )
-from bench_report import machine_info
 from bench_sdo import Child, ChildFailed
-from bench_util import logs_to, OUTPUT, progress, ros_of_its_own, write_report
+from bench_util import OUTPUT, progress, write_report
 
 NODE = 12
 IMAGE_SIZE = 256 * 1024
@@ -201,29 +201,14 @@ def main(argv=None) -> int:
                                                          '%(default)s)')
     args = parser.parse_args(argv)
     args.repetitions = 3 if args.quick else 7
-    logs_to(os.path.join(args.output, 'program_download_logs.txt'))
-    ros_of_its_own()
-    import rclpy
-    machine = machine_info()
-    started = time.monotonic()
-    rclpy.init()
-    caller = Caller()
     row: Dict = {}
     problems: List[str] = []
-    try:
-        row = measure(args, caller)
-    except (RuntimeError, ChildFailed) as error:
-        problems.append(f'program download: {error}')
-        progress(f'program download failed: {error}')
-    except KeyboardInterrupt:
-        problems.append('interrupted (Ctrl-C)')
-    finally:
-        Child.stop_all()
-        caller.close()
-        rclpy.try_shutdown()
-    machine['load_after'] = ' '.join(f'{v:.2f}' for v in os.getloadavg())
-    machine['duration_s'] = round(time.monotonic() - started, 1)
-    machine['quick'] = args.quick
+    with bench_session(args.output, 'program_download', args.quick) as (caller, machine):
+        try:
+            row = measure(args, caller)
+        except (RuntimeError, ChildFailed) as error:
+            problems.append(f'program download: {error}')
+            progress(f'program download failed: {error}')
     text = table(row)
     described = ', '.join(f'{key}: {value}' for key, value in machine.items())
     notes = [f'Every round (KiB/s): gateway {row["gateway"]["all_kib_s"]}, python canopen '
