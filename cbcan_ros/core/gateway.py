@@ -207,6 +207,10 @@ class Gateway:
                                       config.write_protection.refuses_write, config.program)
         self.drives.refuse_enable_when(
             lambda node_id: self.boot.refusal(node_id) or self.program.refusal(node_id))
+        # A device's boot and a program download of it never run at once.
+        self.boot.hold_while(self.program.refusal)
+        self.program.refuse_when(self.boot.booting)
+        self.program.add_listener(self.boot.program_changed)
         self.raw = RawFrames(self.bus, config.raw, config.write_protection,
                              lambda: canopen_ids(self.pdo),
                              echoes(config.interface, config.bus_options))

@@ -11,6 +11,7 @@ ends the download between two segments or blocks, and the result says what the d
 left in.
 """
 
+import logging
 import threading
 from typing import Callable, Dict, Optional
 
@@ -23,6 +24,8 @@ from ..core.program.download import ProgramResult, Progress
 from ..core.program.service import ProgramRequest, ProgramService
 from ..core.sdo.request_queue import resolved
 from .goals import cancel_goal
+
+LOGGER = logging.getLogger(__name__)
 
 
 class ProgramAction:
@@ -81,7 +84,14 @@ class ProgramAction:
         key = bytes(goal_handle.goal_id.uuid)
         self._cancels.pop(key, None)
         self._results[key] = result
-        goal_handle.execute()
+        try:
+            goal_handle.execute()
+        except Exception as error:  # noqa: BLE001 - rclpy is gone: nobody can be answered
+            LOGGER.warning('node %d: the result of a program download could not be handed to '
+                           'ROS (%r): %s', goal_handle.request.node_id, error, result.message)
+            with self._idle:
+                self._running -= 1
+                self._idle.notify_all()
 
     def _answer(self, goal_handle):
         """End the goal with its download's result (the execute callback)."""

@@ -73,6 +73,7 @@ class _Device:
         self.heard = False
         self.lost = False
         self.interrupted = False   # its boot was ended by the bus going down
+        self.held = False          # a boot asked for while it is being programmed
         self.waiters: List[Tuple[int, Future]] = []
 
 
@@ -107,6 +108,33 @@ class BootService:
         self._closing = False
         self._bus_down = ''
         self._listeners: List[Callable[[], None]] = []
+        # Why a device must not be booted now (a program download is writing it), or None.
+        self._programming: Callable[[int], Optional[str]] = lambda node_id: None
+
+    def hold_while(self, programming: Callable[[int], Optional[str]]) -> None:
+        """Hold every boot of a device for which ``programming(node_id)`` says why not.
+
+        Its boot-ups then come from the download (the bootloader, the new program): one boot
+        runs once the download ended (``program_changed``), which configures what it left.
+        """
+        self._programming = programming
+
+    def program_changed(self) -> None:
+        """Boot each device held for its download, now that nothing programs it any more."""
+        with self._lock:
+            for device in self._devices.values():
+                if device.held and not self._closing and not self._programming(
+                        device.plan.node_id):
+                    device.held = False
+                    self._want(device, True)
+
+    def booting(self, node_id: int) -> Optional[str]:
+        """Return why ``node_id`` must not be programmed now (its boot runs), or None."""
+        with self._lock:
+            device = self._devices.get(node_id)
+            running = device is not None and (device.running or device.state.state == BOOTING)
+        return (f'node {node_id} is being booted (its boot configuration runs, '
+                f'~/boot_states): download once it has ended') if running else None
 
     @property
     def node_ids(self) -> List[int]:
@@ -204,6 +232,10 @@ class BootService:
                 return resolved(BootAnswer(False, f'drive {device.plan.label} is '
                                                   f'OPERATION_ENABLED: disable it first, a '
                                                   f'boot resets and stops it'))
+            programming = self._programming(chosen_id)
+            if programming:
+                return resolved(BootAnswer(False, f'{programming}: it is booted once the '
+                                                  f'download has ended'))
         futures = []
         with self._lock:
             if self._closing:
@@ -254,7 +286,13 @@ class BootService:
         return done
 
     def _want(self, device: _Device, booted_itself: bool) -> None:
-        """Ask for a new boot of ``device`` (lock held): it ends the one running."""
+        """Ask for a new boot of ``device`` (lock held): it ends the one running.
+
+        Held while the device is being programmed: a boot-up then is the download's.
+        """
+        if self._programming(device.plan.node_id):
+            device.held = True
+            return
         device.wanted += 1
         device.booted_itself = booted_itself
         device.ready = False

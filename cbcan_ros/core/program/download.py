@@ -282,8 +282,12 @@ class ProgramDownload:
             if reason and result.abort_code in (abort_codes.LOCAL_CONTROL,
                                                 abort_codes.DEVICE_STATE, 0):
                 raise _Failed(reason, result.abort_code)
-            raise _Failed(f'the device ended the download at byte {self._sent} of {total}: '
-                          f'{result.message}', result.abort_code)
+            # An abort of the device's, or no answer in time, is the device's; anything else
+            # (the bus went down, the gateway's own refusal) stopped it on this side.
+            who = ('the device ended the download' if result.abort_code
+                   else 'the download stopped')
+            raise _Failed(f'{who} at byte {self._sent} of {total}: {result.message}',
+                          result.abort_code)
         self._sent = total
         elapsed = max(time.monotonic() - began, 1e-6)
         self._transfer = (f'{kind[0]}, {total} bytes in {elapsed:.2f} s, '

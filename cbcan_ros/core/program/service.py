@@ -11,7 +11,10 @@ device was left in.
 
 from concurrent.futures import Future
 from dataclasses import dataclass
+import errno
 import logging
+import os
+import stat
 import threading
 import time
 from typing import Callable, Dict, List, Optional, Tuple
@@ -101,6 +104,12 @@ class ProgramService:
         self._lock = threading.Lock()
         self._closing = False
         self._listeners: List[Callable[[], None]] = []
+        # Why a device must not be programmed now (its boot runs), or None.
+        self._booting: Callable[[int], Optional[str]] = lambda node_id: None
+
+    def refuse_when(self, booting: Callable[[int], Optional[str]]) -> None:
+        """Refuse a download while ``booting(node_id)`` says why (the boot service's)."""
+        self._booting = booting
 
     def add_listener(self, listener: Callable[[], None]) -> None:
         """Call ``listener()`` when a download begins or ends (no lock held)."""
@@ -137,6 +146,14 @@ class ProgramService:
                            f'per device at a time')
             else:
                 self._runs[request.node_id] = run
+        # Asked once the download is known: a boot starting from now on is held for it, one
+        # started before is seen here.
+        booting = None if problem else self._booting(request.node_id)
+        if booting:
+            with self._lock:
+                self._runs.pop(request.node_id, None)
+            self._tell()  # a boot-up held for it meanwhile is booted now
+            problem = booting
         if problem:
             return resolved(ProgramResult(False, f'{problem}; {NOTHING_SENT}',
                                           refused=True)), _nothing
@@ -202,8 +219,7 @@ class ProgramService:
         problem = None
         image = b''
         try:
-            with open(request.file, 'rb') as file:
-                image = file.read(MAX_IMAGE + 1)
+            image = _read_image(request.file)
         except OSError as error:
             problem = f'file {request.file!r} cannot be read: {error.strerror}'
         else:
@@ -254,6 +270,19 @@ class ProgramService:
     def _tell(self) -> None:
         for listener in self._listeners:
             listener()
+
+
+def _read_image(path: str) -> bytes:
+    """Return a regular file's first ``MAX_IMAGE + 1`` bytes; OSError for any other file.
+
+    Opened without blocking, so a FIFO or a device file given by mistake is refused at
+    once instead of holding the download's thread (and its answer) for good.
+    """
+    descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    with os.fdopen(descriptor, 'rb') as file:
+        if not stat.S_ISREG(os.fstat(descriptor).st_mode):
+            raise OSError(errno.EINVAL, 'not a regular file (a directory, FIFO or device)')
+        return file.read(MAX_IMAGE + 1)
 
 
 def _nothing() -> None:
