@@ -6,7 +6,6 @@ simulated bootloader and checks what went on the bus, what the goal was answered
 gateway shows. Where a test must act in a given phase it waits for that phase's feedback and
 for the device to have taken that phase's command (a long ``clear_time``/``flash_time`` or a
 device that never comes back keeps the phase open): no race with the transfer's speed.
-Defects found are kept as strict xfails, their reason starting with "defect:".
 """
 
 import os
@@ -15,11 +14,12 @@ import subprocess
 import threading
 import zlib
 
-from action_msgs.msg import GoalStatus
+from action_msgs.msg import GoalStatus, GoalStatusArray
 from diagnostic_msgs.msg import DiagnosticStatus
 from durand.services.sdo.server import SDODomainAbort
 import pytest
 from rclpy.action import ActionClient
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from test_boot_configuration import bus_file, Frames, state_of
 from test_diagnostics import DiagnosticsRecorder
 from test_drives import CSV
@@ -141,10 +141,9 @@ def test_a_cancel_in_a_waiting_phase_ends_it_and_sends_no_command_after(
     assert not control_writes(frames, NODE, since), 'a program control command after the cancel'
     assert not image_writes(frames, NODE, since), 'an image after the cancel'
     assert setup.device.starts == starts
+    # The cancelled run is gone: not shown, and no longer refusing the device.
     wait_until(lambda: not programming(setup), WAIT, 'node states showing the download over')
-    # The device may be programmed again at once: the cancelled run is gone.
-    again, _, _ = setup.run(node_id=NODE, file=setup.image(500, name='again.bin'), start=False)
-    assert 'being programmed already' not in again.message, again.message
+    assert setup.core.program.refusal(NODE) is None
 
 
 def test_a_cancel_after_the_download_ended_is_rejected_and_the_result_stays(rig):
@@ -230,15 +229,20 @@ def test_more_bad_goals_are_refused_naming_the_field_before_anything_is_written(
 
 def test_two_goals_for_one_device_sent_together_run_one_download(rig):
     setup = rig()
+    hold = Hold(setup, 3000)  # the first download stays under way until both are answered
     path = setup.image()
     goals = [setup.action.send_goal_async(ProgramDownload.Goal(node_id=NODE, file=path))
              for _ in range(2)]
-    results = [setup.result(wait_for_future(goal, WAIT))[0] for goal in goals]
+    answers = [wait_for_future(goal, WAIT).get_result_async() for goal in goals]
+    assert hold.reached.wait(WAIT)
+    wait_until(lambda: any(answer.done() for answer in answers), WAIT, 'one goal answered')
+    hold.release()
+    results = [wait_for_future(answer, WAIT).result for answer in answers]
     assert sorted(r.success for r in results) == [False, True], [r.message for r in results]
     refused = next(r for r in results if not r.success)
     assert 'being programmed already' in refused.message, refused.message
     assert 'nothing was sent' in refused.message, refused.message
-    assert control_writes(setup.frames.snapshot(), NODE) == [0, 3, 1]
+    assert control_writes(setup.frames.snapshot(), NODE) == [STOP, CLEAR, START]
     assert len(image_writes(setup.frames.snapshot(), NODE)) == 1
     assert setup.device.starts == 1
 
@@ -568,6 +572,12 @@ def test_ctrl_c_in_the_cli_cancels_the_download_with_an_abort_and_exits_130(
     path = tmp_path / 'firmware.bin'
     path.write_bytes(os.urandom(SMALL))
     out, err = tmp_path / 'out.txt', tmp_path / 'err.txt'
+    statuses = set()
+    client_node.create_subscription(
+        GoalStatusArray, f'{name}/program_download/_action/status',
+        lambda array: statuses.update(s.status for s in array.status_list),
+        QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                   reliability=ReliabilityPolicy.RELIABLE))
     cli = None
     try:
         StateWatcher(client_node, name).wait_for({NODE: 'PRE_OPERATIONAL'}, START_TIMEOUT)
@@ -577,7 +587,11 @@ def test_ctrl_c_in_the_cli_cancels_the_download_with_an_abort_and_exits_130(
                                    stdout=stdout, stderr=stderr, text=True)
         assert holding.wait(START_TIMEOUT), gateway.output()
         cli.send_signal(signal.SIGINT)
-        released.set()  # the cancel is taken between two blocks
+        # Once the gateway took the cancel (the goal shows CANCELING), the device goes on:
+        # the download ends at its next block.
+        wait_until(lambda: GoalStatus.STATUS_CANCELING in statuses, START_TIMEOUT,
+                   'the goal CANCELING')
+        released.set()
         status = cli.wait(START_TIMEOUT)
     finally:
         released.set()
@@ -886,3 +900,41 @@ def test_a_boot_up_mid_download_starts_no_boot_into_the_device_being_programmed(
             'NMT start of the device while it was being programmed (flash still polled after)'
     finally:
         setup.close()
+
+
+class StartRefusingDevice(BootloaderDevice):
+    """A bootloader that refuses to start the new program (0x1F51:1 = 1 aborted)."""
+
+    def _control(self, command: int) -> None:
+        if command == START:
+            raise SDODomainAbort(ABORT_DEVICE_STATE, (PROGRAM_CONTROL, 1))
+        super()._control(command)
+
+
+def test_a_refused_start_fails_in_starting_with_the_devices_abort_code(
+        ros_context, start_durand, tmp_path):
+    def refusing(node_id, kind=DurandDevice, **options):
+        kind = StartRefusingDevice if kind is BootloaderDevice else kind
+        return start_durand(node_id, kind=kind, **options)
+    setup = Rig(refusing, tmp_path)
+    try:
+        result, status, _ = setup.run(node_id=NODE, file=setup.image(2000))
+        assert not result.success and status == GoalStatus.STATUS_ABORTED
+        assert result.message.startswith('STARTING failed: writing 1 to 0x1F51:1 failed'), \
+            result.message
+        assert control_writes(setup.frames.snapshot(), NODE) == [STOP, CLEAR, START]
+        assert result.abort_code == ABORT_DEVICE_STATE, result
+    finally:
+        setup.close()
+
+
+def test_a_flash_busy_past_its_timeout_fails_in_flashing_and_sends_no_start(rig):
+    setup = rig(device=dict(flash_time=120.0), **{'program_download.flash_timeout': 0.5})
+    result, status, _ = setup.run(node_id=NODE, file=setup.image(2000))
+    assert not result.success and status == GoalStatus.STATUS_ABORTED
+    assert result.message.startswith('FLASHING failed: the flash was still busy'), \
+        result.message
+    assert 'program_download.flash_timeout' in result.message, result.message
+    assert result.flash_status == 1, result
+    assert control_writes(setup.frames.snapshot(), NODE) == [STOP, CLEAR]
+    assert setup.device.starts == 0

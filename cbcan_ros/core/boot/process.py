@@ -14,7 +14,14 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from .. import nmt
 from ..drives import cia402
-from ..program.download import ProgramDownload, ProgramLink, ProgramSettings, SOFTWARE_ID
+from ..program.download import (
+    MAX_IMAGE,
+    ProgramDownload,
+    ProgramLink,
+    ProgramSettings,
+    read_image,
+    SOFTWARE_ID,
+)
 from ..sdo import abort_codes
 from ..sdo.requests import Access, MAX_TIMEOUT, SdoResult
 from .plan import (
@@ -250,11 +257,14 @@ class DeviceBoot:
                                   f'parameter program_download.at_boot true; or update it with '
                                   f'~/program_download')
         try:
-            with open(plan.software_file, 'rb') as file:
-                image = file.read()
+            image = read_image(plan.software_file)
         except OSError as error:
             raise BootFailed('I', f'{differs}; software_file {plan.software_file} cannot be '
                                   f'read: {error.strerror}') from None
+        if not image or len(image) > MAX_IMAGE:
+            raise BootFailed('I', f'{differs}; software_file {plan.software_file} holds '
+                                  f'{"no" if not image else "more than " + str(MAX_IMAGE)} '
+                                  f'bytes: not a program image')
         link = self._link
         download = ProgramDownload(plan.node_id, image, 1, plan.software_version, True,
                                    ProgramLink(link.sdo, link.stream, link.await_boot_up,

@@ -13,6 +13,9 @@ watch. The ROS action and the boot process (``software_file``) give their own li
 """
 
 from dataclasses import dataclass
+import errno
+import os
+import stat
 import time
 from typing import Callable, List, Optional, Sequence
 
@@ -39,6 +42,7 @@ FLASH_POLL = 0.05  # s between two reads of 0x1F57 while the flash is busy
 FEEDBACK_PERIOD = 0.1  # s: the download's progress is told at most this often
 NO_SUCH_OBJECT = (abort_codes.OBJECT_DOES_NOT_EXIST, abort_codes.SUBINDEX_NOT_EXIST)
 MAX_PROGRAM = 254  # 0x1F50..0x1F57 sub-indices 1..254; 0 holds the count
+MAX_IMAGE = 64 * 1024 * 1024  # bytes: larger files are refused, not read into memory
 NOTHING_SENT = 'nothing was sent'
 
 
@@ -91,6 +95,19 @@ class ProgramLink:
     stream: Callable[[Access, float, Callable[[int, bool], Optional[str]]], SdoResult]
     await_boot_up: Callable[[Callable[[], str], float], bool]
     ended: Callable[[], str]
+
+
+def read_image(path: str) -> bytes:
+    """Return a program image file's first ``MAX_IMAGE + 1`` bytes; OSError for any other file.
+
+    Opened without blocking, so a FIFO or a device file given by mistake is refused at once
+    instead of holding the download's thread (and its answer) for good.
+    """
+    descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    with os.fdopen(descriptor, 'rb') as file:
+        if not stat.S_ISREG(os.fstat(descriptor).st_mode):
+            raise OSError(errno.EINVAL, 'not a regular file (a directory, FIFO or device)')
+        return file.read(MAX_IMAGE + 1)
 
 
 class _Failed(Exception):
@@ -297,23 +314,25 @@ class ProgramDownload:
         self._begin(STARTING)
         access = Access(self.node_id, PROGRAM_CONTROL, self._program, True, bytes([START]))
 
-        def send() -> str:
+        refused: List[SdoResult] = []
+
+        def send_once() -> str:
             result = self._sdo([access], self._settings.answer_timeout)[0]
             # A device may jump into its new program without answering: its boot-up tells.
             if result.success or result.abort_code == abort_codes.TIMEOUT:
                 return ''
-            return f'writing 1 to 0x1F51:{self._program} failed: {result.message}'
-
-        problems = []
-
-        def send_once() -> str:
-            problems.append(send())
-            return problems[-1]
+            refused.append(result)
+            return result.message
 
         came = self._link.await_boot_up(send_once, self._settings.start_timeout)
-        if problems and problems[-1]:
+        if refused:
             self._ended()
-            raise _Failed(problems[-1])
+            n = self._program
+            self._left = (f'program {n} written, its start refused by the device: not '
+                          f'started; start it (0x1F51:{n} = 1) once the device allows it, or '
+                          f'download again')
+            raise _Failed(f'writing 1 to 0x1F51:{n} failed: {refused[0].message}',
+                          refused[0].abort_code)
         if not came:
             self._ended()
             raise _Failed(f'no boot-up message within {self._settings.start_timeout:g} s '

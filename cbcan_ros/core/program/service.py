@@ -4,17 +4,14 @@ A request is checked (its fields, a download already running for the device, the
 drive that is enabled, a device not heard) before anything is sent; then
 :class:`~.download.ProgramDownload` runs its phases on the download's own thread, through the
 gateway's SDO channels, so other devices' SDO, PDO and drives go on, and the caller (the ROS
-action) is answered from that thread. A cancel, shutdown or the bus going down ends a
-download between two segments or blocks, with an SDO abort, and the answer says what the
-device was left in.
+action) is answered from that thread. A cancel or shutdown ends a download between two
+segments or blocks, with an SDO abort; the bus going down ends it where it is (nothing can
+be sent then). The answer says what the device was left in.
 """
 
 from concurrent.futures import Future
 from dataclasses import dataclass
-import errno
 import logging
-import os
-import stat
 import threading
 import time
 from typing import Callable, Dict, List, Optional, Tuple
@@ -24,6 +21,7 @@ from ..bus import prompt
 from ..protocol import MAX_NODE_ID
 from ..sdo.request_queue import answer, resolved
 from .download import (
+    MAX_IMAGE,
     MAX_PROGRAM,
     NOTHING_SENT,
     PROGRAM_CONTROL,
@@ -33,13 +31,13 @@ from .download import (
     ProgramResult,
     ProgramSettings,
     Progress,
+    read_image,
 )
 
 LOGGER = logging.getLogger(__name__)
 
 SHUTTING_DOWN = 'the gateway is shutting down'
 CANCELLED = 'cancelled by the caller'
-MAX_IMAGE = 64 * 1024 * 1024  # bytes: larger files are refused, not read into memory
 STOP_WAIT = 2.0  # s shutdown waits for the downloads to end and be answered
 
 
@@ -219,7 +217,7 @@ class ProgramService:
         problem = None
         image = b''
         try:
-            image = _read_image(request.file)
+            image = read_image(request.file)
         except OSError as error:
             problem = f'file {request.file!r} cannot be read: {error.strerror}'
         else:
@@ -270,19 +268,6 @@ class ProgramService:
     def _tell(self) -> None:
         for listener in self._listeners:
             listener()
-
-
-def _read_image(path: str) -> bytes:
-    """Return a regular file's first ``MAX_IMAGE + 1`` bytes; OSError for any other file.
-
-    Opened without blocking, so a FIFO or a device file given by mistake is refused at
-    once instead of holding the download's thread (and its answer) for good.
-    """
-    descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-    with os.fdopen(descriptor, 'rb') as file:
-        if not stat.S_ISREG(os.fstat(descriptor).st_mode):
-            raise OSError(errno.EINVAL, 'not a regular file (a directory, FIFO or device)')
-        return file.read(MAX_IMAGE + 1)
 
 
 def _nothing() -> None:
