@@ -24,7 +24,8 @@ Measured over one window:
 - ``joint_commands`` to RPDO: from the publication to the RPDO frame that carries its
   target (the synchronous RPDO waits for the next SYNC), and from that SYNC to the RPDO;
 - where the node's time goes: a py-spy profile of the node (samples of the thread holding
-  the GIL: its Python work, not its waits) over part of the window,
+  the GIL: its Python work, not its waits) right after the window (py-spy's own load would
+  change what is measured),
   written beside the report (``control_rate_<hz>_profile.txt``), when py-spy is installed.
 """
 
@@ -252,11 +253,7 @@ def row(args, caller: Caller, hertz: str) -> Dict:
         threads_before = thread_ticks(node.pid)
         cpu_before = {name: proc_cpu_seconds(pid) for name, pid in pids.items()}
         started = time.monotonic()
-        profiled = None
-        if args.profile:
-            profiled = profile(node.pid, min(args.seconds, 20.0),
-                               os.path.join(args.output, f'control_rate_{hertz}_profile.raw'))
-        time.sleep(max(0.0, args.seconds - (time.monotonic() - started)))
+        time.sleep(args.seconds)
         cpu_after = {name: proc_cpu_seconds(pid) for name, pid in pids.items()}
         threads_after = thread_ticks(node.pid)
         elapsed = time.monotonic() - started
@@ -266,6 +263,11 @@ def row(args, caller: Caller, hertz: str) -> Dict:
             commands = dict(controller.sent)
         incomplete = controller.incomplete
         base = controller.base[f'node_{DRIVES[0]}']
+        # After the window: py-spy takes a core's share of the machine itself.
+        profiled = None
+        if args.profile:
+            profiled = profile(node.pid, min(args.seconds, 20.0),
+                               os.path.join(args.output, f'control_rate_{hertz}_profile.raw'))
     finally:
         if controller is not None:
             controller.close()
