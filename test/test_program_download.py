@@ -422,8 +422,9 @@ def test_a_boot_that_cannot_update_the_software_fails_with_its_letter(
         gateway.close()
 
 
-def test_sigint_during_a_download_aborts_it_answers_the_goal_and_sends_nothing_after(
-        start_node, start_durand, client_node, tmp_path):
+@pytest.mark.parametrize('stop', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_a_signal_during_a_download_aborts_it_answers_the_goal_and_sends_nothing_after(
+        start_node, start_durand, client_node, tmp_path, stop):
     # The installed node in a process of its own, as users run it; the device in this one
     # holds its acknowledgement of a block, so the signal lands while the image is on its way.
     group, port = private_bus()
@@ -455,7 +456,7 @@ def test_sigint_during_a_download_aborts_it_answers_the_goal_and_sends_nothing_a
             ProgramDownload.Goal(node_id=NODE, file=str(path))), START_TIMEOUT)
         answer = goal.get_result_async()
         assert holding.wait(START_TIMEOUT), gateway.output()
-        gateway.process.send_signal(signal.SIGINT)
+        gateway.process.send_signal(stop)
         assert gateway.wait(STOP_TIMEOUT) == 0, gateway.output()
         released.set()
         result = wait_for_future(answer, WAIT).result
@@ -468,4 +469,5 @@ def test_sigint_during_a_download_aborts_it_answers_the_goal_and_sends_nothing_a
     requests = [message for _, message in recorder.frames
                 if message.arbitration_id == 0x600 + NODE]
     assert requests[-1].data[0] == 0x80, 'the last request to the device is not the abort'
+    assert device.starts == 0
     assert device.starts == 0

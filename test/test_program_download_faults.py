@@ -370,52 +370,6 @@ def _has_reader(fifo) -> bool:
     return True
 
 
-def test_sigterm_during_a_download_aborts_it_answers_the_goal_and_sends_nothing_after(
-        start_node, start_durand, client_node, tmp_path):
-    group, port = private_bus()
-    device = start_durand(NODE, kind=BootloaderDevice, interface='udp_multicast',
-                          channel=group, bus_options={'port': port})
-    wait_until(lambda: device.running, WAIT, 'the device receiving')
-    holding, released = threading.Event(), threading.Event()
-    send = device._network.send
-
-    def held(cob_id: int, data: bytes) -> None:
-        if data[:1] == BLOCK_ACKNOWLEDGED and len(device.image) >= 3000 and \
-                not released.is_set():
-            holding.set()
-            released.wait(WAIT)
-        send(cob_id, data)
-    device._network.send = held
-    recorder = BusRecorder(group, port)
-    name = f'{namespace()}/cbcan'
-    gateway = start_node(arguments(name, '-p', 'can.interface:=udp_multicast',
-                                   '-p', f'can.channel:={group}', '-p', f'nodes:=[{NODE}]',
-                                   '-p', 'sdo.timeout:=10.0'), port)
-    try:
-        StateWatcher(client_node, name).wait_for({NODE: 'PRE_OPERATIONAL'}, START_TIMEOUT)
-        action = ActionClient(client_node, ProgramDownload, f'{name}/program_download')
-        assert action.wait_for_server(timeout_sec=START_TIMEOUT)
-        path = tmp_path / 'firmware.bin'
-        path.write_bytes(os.urandom(SMALL))
-        goal = wait_for_future(action.send_goal_async(
-            ProgramDownload.Goal(node_id=NODE, file=str(path))), START_TIMEOUT)
-        answer = goal.get_result_async()
-        assert holding.wait(START_TIMEOUT), gateway.output()
-        gateway.process.send_signal(signal.SIGTERM)
-        assert gateway.wait(STOP_TIMEOUT) == 0, gateway.output()
-        released.set()
-        result = wait_for_future(answer, WAIT).result
-    finally:
-        released.set()
-        recorder.close()
-    assert not result.success
-    assert 'DOWNLOADING failed: the gateway is shutting down' in result.message, result.message
-    requests = [message for _, message in recorder.frames
-                if message.arbitration_id == SDO_REQUEST + NODE]
-    assert requests[-1].data[0] == 0x80, 'the last request to the device is not the abort'
-    assert device.starts == 0
-
-
 # At boot.
 
 def test_a_boot_with_the_matching_software_version_downloads_nothing(
