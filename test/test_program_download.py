@@ -422,12 +422,13 @@ def test_a_boot_that_cannot_update_the_software_fails_with_its_letter(
         gateway.close()
 
 
-@pytest.mark.parametrize('stop', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
-def test_a_signal_during_a_download_aborts_it_answers_the_goal_and_sends_nothing_after(
-        start_node, start_durand, client_node, tmp_path, stop):
-    # The installed node in a process of its own, as users run it; the device in this one
-    # holds its acknowledgement of a block, so the signal lands while the image is on its way.
-    group, port = private_bus()
+def held_bootloader(start_durand, group: str, port: int):
+    """Return (device, holding, released): a bootloader on udp_multicast ``group``/``port``.
+
+    It holds its acknowledgement of the block that brings the image past 3,000 bytes
+    (``holding`` set) until ``released`` is set, so whatever a test does next lands while the
+    image is on its way.
+    """
     device = start_durand(NODE, kind=BootloaderDevice, interface='udp_multicast',
                           channel=group, bus_options={'port': port})
     wait_until(lambda: device.running, WAIT, 'the device receiving')
@@ -441,6 +442,16 @@ def test_a_signal_during_a_download_aborts_it_answers_the_goal_and_sends_nothing
             released.wait(WAIT)
         send(cob_id, data)
     device._network.send = held
+    return device, holding, released
+
+
+@pytest.mark.parametrize('stop', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_a_signal_during_a_download_aborts_it_answers_the_goal_and_sends_nothing_after(
+        start_node, start_durand, client_node, tmp_path, stop):
+    # The installed node in a process of its own, as users run it; the device in this one
+    # holds its acknowledgement of a block, so the signal lands while the image is on its way.
+    group, port = private_bus()
+    device, holding, released = held_bootloader(start_durand, group, port)
     recorder = BusRecorder(group, port)
     name = f'{namespace()}/cbcan'
     gateway = start_node(arguments(name, '-p', 'can.interface:=udp_multicast',

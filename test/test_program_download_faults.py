@@ -27,8 +27,8 @@ from test_drives import NODE as DRIVE
 from test_drives import Rig as DriveRig
 from test_program_download import (
     aborts,
-    BLOCK_ACKNOWLEDGED,
     booted,
+    held_bootloader,
     Hold,
     LOCAL_CONTROL,
     NODE,
@@ -505,19 +505,7 @@ def test_a_drive_being_programmed_cannot_be_enabled(ros_context, start_durand, t
 def test_ctrl_c_in_the_cli_cancels_the_download_with_an_abort_and_exits_130(
         start_node, start_durand, client_node, tmp_path):
     group, port = private_bus()
-    device = start_durand(NODE, kind=BootloaderDevice, interface='udp_multicast',
-                          channel=group, bus_options={'port': port})
-    wait_until(lambda: device.running, WAIT, 'the device receiving')
-    holding, released = threading.Event(), threading.Event()
-    send = device._network.send
-
-    def held(cob_id: int, data: bytes) -> None:
-        if data[:1] == BLOCK_ACKNOWLEDGED and len(device.image) >= 3000 and \
-                not released.is_set():
-            holding.set()
-            released.wait(WAIT)
-        send(cob_id, data)
-    device._network.send = held
+    device, holding, released = held_bootloader(start_durand, group, port)
     recorder = BusRecorder(group, port)
     name = f'{namespace()}/cbcan'
     gateway = start_node(arguments(name, '-p', 'can.interface:=udp_multicast',
@@ -690,19 +678,7 @@ def test_after_a_gateway_killed_mid_image_a_new_gateway_programs_the_device(
     # SIGKILL: no abort can go out; the device keeps a half-written block transfer. The next
     # gateway's download must still work (no answer waited for forever, the image whole).
     group, port = private_bus()
-    device = start_durand(NODE, kind=BootloaderDevice, interface='udp_multicast',
-                          channel=group, bus_options={'port': port})
-    wait_until(lambda: device.running, WAIT, 'the device receiving')
-    holding, released = threading.Event(), threading.Event()
-    send = device._network.send
-
-    def held(cob_id: int, data: bytes) -> None:
-        if data[:1] == BLOCK_ACKNOWLEDGED and len(device.image) >= 3000 and \
-                not released.is_set():
-            holding.set()
-            released.wait(WAIT)
-        send(cob_id, data)
-    device._network.send = held
+    device, holding, released = held_bootloader(start_durand, group, port)
     parameters = ('-p', 'can.interface:=udp_multicast', '-p', f'can.channel:={group}',
                   '-p', f'nodes:=[{NODE}]')
     path = tmp_path / 'firmware.bin'
