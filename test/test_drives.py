@@ -303,13 +303,20 @@ def enabled_in_csp_with_sync(rig):
 
 
 def watch(bus, frames: list, condition, what: str):
-    """Collect ``bus``'s frames into ``frames`` until ``condition(frames)``; return that."""
+    """Collect ``bus``'s frames into ``frames`` until ``condition(frames)``; return that.
+
+    A timeout names the last frames seen: a rare miss then says what the bus carried.
+    """
     def seen():
         message = bus.recv(0.1)
         if message is not None:
             frames.append(message)
         return condition(frames)
-    return wait_until(seen, WAIT, what)
+    try:
+        return wait_until(seen, WAIT, what)
+    except AssertionError as error:
+        carried = ' '.join(f'{m.arbitration_id:03X}#{bytes(m.data).hex()}' for m in frames[-40:])
+        raise AssertionError(f'{error}; the last frames: {carried or "none"}') from None
 
 
 def two_syncs_after_the_stop(frames: list) -> bool:

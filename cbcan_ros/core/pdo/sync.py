@@ -36,6 +36,8 @@ SYNC_COB_ID = 0x80
 MAX_COUNTER = 240
 # Intervals between SYNCs heard on the bus that the measured period is taken over.
 PERIOD_SAMPLES = 200
+# SYNCs heard back that the time grid is placed by (their median phase).
+GRID_SAMPLES = 15
 # Synchronous RPDOs leave this fraction of a period after the SYNC: late enough never to
 # overtake it, early enough for the synchronous window of any device. A frame of a stream
 # is sent at once unless this fraction or less of the period is left before the next SYNC.
@@ -74,8 +76,10 @@ class SyncProducer:
         self._network = network
         self._lock = threading.Condition()
         self._task = None
+        self._task_start = 0.0
         self._grid_start = 0.0
-        self._grid_heard = False  # the grid was moved onto a SYNC of the task heard back
+        # Phases (seconds after a point of the task's start grid) of the SYNCs heard back.
+        self._phases: deque = deque(maxlen=GRID_SAMPLES)
         self._starts = 0
         self._closing = False
         self._after_sync: List[Callable[[], None]] = []
@@ -186,8 +190,8 @@ class SyncProducer:
         except BusDown as error:
             LOGGER.warning('SYNC could not be started: %s', error)
             return False
-        self._grid_start = grid_start
-        self._grid_heard = False
+        self._task_start = self._grid_start = grid_start
+        self._phases.clear()
         self._starts += 1
         return True
 
@@ -239,21 +243,25 @@ class SyncProducer:
                 self._follow_heard(timestamp)
 
     def _follow_heard(self, stamp: float) -> None:
-        """Move the grid onto the SYNCs heard back (lock held).
+        """Place the grid on the SYNCs heard back: their median phase (lock held).
 
         python-can's thread starts its own grid when it first runs, which on a busy machine
         is milliseconds after the task was started: every SYNC then leaves that much after
-        its grid point, and a stream's frame timed on the grid could race it. The first SYNC
-        heard moves the grid onto it; a later one heard earlier in the cycle (less delayed on
-        its way in) moves it back to that. Adapters that do not echo their own frames leave
+        its grid point, and a stream's frame timed on the grid could race it. A SYNC is
+        heard after a delay of its own: the median of the last ones is where the cycle's
+        SYNC is, and one heard late by a stall (even by more than half a period, which
+        reads as early) does not move it. Adapters that do not echo their own frames leave
         the grid where the task was started.
         """
-        late = (stamp - self._grid_start) % self.period
-        if not self._grid_heard:
-            self._grid_start += late
-            self._grid_heard = True
-        elif late > self.period / 2:
-            self._grid_start -= self.period - late
+        period = self.period
+        self._phases.append((stamp - self._task_start) % period)
+        reference = (self._grid_start - self._task_start) % period
+        if len(self._phases) == 1:
+            reference = self._phases[0]
+        # Each phase as the nearest one to the grid's, so the median does not wrap.
+        phases = sorted(reference + (phase - reference + period / 2) % period - period / 2
+                        for phase in self._phases)
+        self._grid_start = self._task_start + phases[len(phases) // 2]
 
 def _run_all(callbacks: List[Callable[[], None]]) -> None:
     for callback in callbacks:
