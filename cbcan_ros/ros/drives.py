@@ -21,6 +21,7 @@ import logging
 import math
 import re
 import threading
+import time
 from typing import Callable, Dict, List, Optional
 
 from rclpy.action import ActionServer, GoalResponse
@@ -41,6 +42,9 @@ from .goals import cancel_goal
 from .pdo import stamp_of
 
 LOGGER = logging.getLogger(__name__)
+
+# How long drive state changes wait to be published, for the commands woken with them.
+YIELD_TO_COMMANDS = 0.001
 
 STATE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -149,6 +153,13 @@ class DriveTopics:
             with self._wake:
                 while not self._changed and not self._closing:
                     self._wake.wait()
+                if self._closing:
+                    return
+            # The statusword that told this change also woke the command waiting for it
+            # (an enable's next step, a command's answer): that goes first, publishing a
+            # moment later; a step took a third longer while both contended for the GIL.
+            time.sleep(YIELD_TO_COMMANDS)
+            with self._wake:
                 if self._closing:
                     return
                 changed, self._changed = self._changed, []

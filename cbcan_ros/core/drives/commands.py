@@ -211,7 +211,8 @@ class DriveCommands:
                                       ENABLED_ONLY.get(), halt)
         except ValueError as error:
             raise DriveFailed(f'node {drive.node_id}: {error}; nothing was sent') from None
-        result = await asyncio.wrap_future(sent)
+        # Most writes are sent by the time send returns: no round through the loop for them.
+        result = sent.result() if sent.done() else await asyncio.wrap_future(sent)
         if not result.success:
             # The send's own refusals name the node already; the SDO layer's do not.
             named = result.message.startswith(f'node {drive.node_id} ')
@@ -226,8 +227,14 @@ class DriveCommands:
         return await self._until(drive, lambda status: drive.updates > mark
                                  and ok(status), fault_ok)
 
-    async def _reach(self, drive, wanted: str, done: Callable, fault_ok: bool = False):
-        """Step the drive towards ``wanted`` until ``done(status)``, a transition at a time."""
+    async def _reach(self, drive, wanted: str, done: Callable, fault_ok: bool = False,
+                     first: Optional[Dict[int, int]] = None):
+        """Step the drive towards ``wanted`` until ``done(status)``, a transition at a time.
+
+        ``first``: values sent before any step, in the first step's write when there is one
+        (its frames come before the controlword's, ``frames.plan``).
+        """
+        values = dict(first or {})
         status = self._service.status(drive.node_id)
         while not done(status):
             if status.faulted and not fault_ok:
@@ -237,19 +244,24 @@ class DriveCommands:
             step = cia402.step_towards(status.state, wanted)
             before = status.state
             if step is not None:
-                await self._send(drive, {cia402.CONTROLWORD: step})
+                values[cia402.CONTROLWORD] = step
+            if values:
+                await self._send(drive, values)
+                values = {}
             status = await self._until(
                 drive, lambda s, before=before: s.state != before or done(s), fault_ok)
+        if values:
+            await self._send(drive, values)
         return status
 
-    async def _hold(self, drive, mode: int) -> int:
-        """Set ``mode``'s target so that the axis stays where it is (before any enable).
+    async def _hold(self, drive, mode: int) -> Dict[int, int]:
+        """Return ``mode``'s target that keeps the axis where it is, not sent yet.
 
-        Returns the target set (0 for a mode that takes none).
+        {} for a mode that takes none.
         """
         index = cia402.TARGET_OF_MODE.get(mode)
         if index is None:
-            return 0
+            return {}
         value = 0
         if index == cia402.TARGET_TORQUE:
             value = self._service.settings.hold_torques.get(drive.node_id, 0)
@@ -261,17 +273,22 @@ class DriveCommands:
                                   f'not be read, so no target could hold the axis; nothing '
                                   f'was enabled')
             value = read[cia402.POSITION_ACTUAL]
-        await self._send(drive, {index: value})
-        return value
+        return {index: value}
 
-    async def _change_mode(self, drive, mode: int) -> int:
-        """Hold the axis, then change to ``mode``; return the target that holds it."""
-        held = await self._hold(drive, mode)
+    async def _change_mode(self, drive, mode: int,
+                           hold: Optional[Dict[int, int]] = None) -> None:
+        """Hold the axis (``hold``, else ``mode``'s holding target), then change to ``mode``.
+
+        The holding target goes in a write of its own before the mode: the drive must not
+        take the old mode's target in the new one.
+        """
+        hold = await self._hold(drive, mode) if hold is None else hold
+        if hold:
+            await self._send(drive, hold)
         if self._service.status(drive.node_id).mode != mode:
             drive.pp_goal = None  # the set-point of another mode is no base for a move
             await self._send(drive, {cia402.MODE: mode})
             await self._until(drive, lambda status: status.mode == mode)
-        return held
 
     # The commands.
 
@@ -295,10 +312,17 @@ class DriveCommands:
             # 0: waited for, then the axis is held where it is.
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._standstill(drive, False), STANDSTILL_WAIT)
-        held = await self._change_mode(drive, mode or self._service.status(drive.node_id).mode)
+        mode = mode or self._service.status(drive.node_id).mode
+        hold = await self._hold(drive, mode)
+        held = hold.get(cia402.TARGET_POSITION, 0)
+        if self._service.status(drive.node_id).mode != mode:
+            await self._change_mode(drive, mode, hold)
+            hold = {}
         self._service.set_halted(drive, '')
+        # In the mode already: the holding target goes with the first step's controlword
+        # (before it, frames.plan), a round trip less than a write of its own.
         status = await self._reach(drive, cia402.OPERATION_ENABLED,
-                                   lambda s: s.state == cia402.OPERATION_ENABLED)
+                                   lambda s: s.state == cia402.OPERATION_ENABLED, first=hold)
         if drive.controlword & cia402.HALT:  # already enabled, halted: released, held
             if status.mode == cia402.PROFILE_POSITION:
                 # Released alone, it would go on to the set-point it was halted on its way to.
