@@ -23,6 +23,11 @@ Measured over one window:
 - the SYNC period error, p99, at the receiver;
 - ``joint_commands`` to RPDO: from the publication to the RPDO frame that carries its
   target (the synchronous RPDO waits for the next SYNC), and from that SYNC to the RPDO;
+- the floor: the same set-up with, in the gateway's place, a process that does only what any
+  gateway of this row must (``bench_drive_host.py floor``: SYNC, every frame taken,
+  ``joint_states`` a SYNC, the RPDOs of each ``joint_commands``; no checks, no CANopen),
+  its CPU beside the bare receiver's of its own run: how far under the receiver target
+  Python, rclpy and python-can can go on this machine at all;
 - where the node's time goes: a py-spy profile of the node (samples of the thread holding
   the GIL: its Python work, not its waits) right after the window (py-spy's own load would
   change what is measured),
@@ -40,6 +45,7 @@ import sys
 import threading
 import time
 from typing import Dict, List, Optional
+import uuid
 
 from bench_drives import (
     _stats,
@@ -65,6 +71,7 @@ CPU_TARGET = 30.0  # % of a core
 RECEIVER_TARGET = 1.5  # x the bare receiver
 SYNC_ERROR_TARGET = 0.5  # ms, p99
 LATENCY_TARGETS = (0.5, 2.0)  # ms, p50 and p99
+RECORDED = ','.join(hex(cob_id) for cob_id in (SYNC, *(RPDO_1 + n for n in DRIVES)))
 
 
 class Controller:
@@ -221,19 +228,83 @@ def cycles(frames: List, commands: Dict[int, float], base: float) -> Dict:
             'periods_ms': periods, 'latencies_ms': latencies, 'after_sync_ms': after_sync}
 
 
+def cpu_over(pids: Dict[str, int], seconds: float):
+    """Return ({name: % of a core} of the processes ``pids`` over ``seconds``, the window)."""
+    before = {name: proc_cpu_seconds(pid) for name, pid in pids.items()}
+    started = time.monotonic()
+    time.sleep(seconds)
+    after = {name: proc_cpu_seconds(pid) for name, pid in pids.items()}
+    elapsed = time.monotonic() - started
+    return {name: 100 * (after[name] - before[name]) / elapsed for name in pids}, elapsed
+
+
+def floor_row(args, caller: Caller, hertz: str) -> Dict:
+    """Measure the floor beside a rate: the least any gateway does (``floor`` helper).
+
+    The same drives, frame generator, bare receiver and controller as the rate's row, with
+    the floor process in the gateway's place; its CPU and the receiver's over a window as
+    long.
+    """
+    bus = UdpBus()
+    helpers: Dict[str, Child] = {}
+    controller = None
+    namespace = f'/benchfloor{uuid.uuid4().hex[:8]}'
+    try:
+        helpers['drives'] = start_helper(
+            f'{hertz} Hz floor drives', 'drives', bus, '--nodes', ','.join(map(str, DRIVES)),
+            '--transmission-type', '1', '--shared-socket')
+        helpers['reader'] = start_helper(f'{hertz} Hz floor reader', 'reader', bus,
+                                         '--record', RECORDED)
+        helpers['floor'] = start_helper(
+            f'{hertz} Hz floor', 'floor', bus, '--nodes', ','.join(map(str, DRIVES)),
+            '--namespace', namespace, '--period', str(RATES[hertz]))
+        controller = Controller(caller, namespace)
+        wait_until(lambda: controller.base is not None, START_TIMEOUT,
+                   "the floor's joint_states")
+        helpers['drives'].tell({'op': 'generate'})
+        helpers['drives'].expect('ok', START_TIMEOUT)
+        controller.running = True
+        _stats(helpers['reader'])  # forget what was recorded before the window
+        states_before = controller.states
+        cpu, elapsed = cpu_over({'floor': helpers['floor'].pid,
+                                 'reader': helpers['reader'].pid}, args.seconds)
+        states = controller.states - states_before
+        recorded = _stats(helpers['reader'])
+        with controller._lock:
+            commands = dict(controller.sent)
+        base = controller.base[f'node_{DRIVES[0]}']
+    finally:
+        if controller is not None:
+            controller.close()
+        for helper in reversed(list(helpers.values())):
+            helper.stop()
+    found = cycles(recorded['frames'], commands, base)
+    return {'floor_cpu': cpu['floor'], 'floor_reader_cpu': cpu['reader'],
+            'floor_ratio': cpu['floor'] / cpu['reader'] if cpu['reader'] else None,
+            'floor_joint_states': states, 'floor_syncs': found['syncs'],
+            'floor_rpdo_missing': found['rpdo_missing'],
+            'floor_sync_error_p99_ms': _sync_error_p99(found, RATES[hertz]),
+            'floor_latency_p50_ms': percentile(found['latencies_ms'], 0.5)
+            if found['latencies_ms'] else None}
+
+
+def _sync_error_p99(found: Dict, period: float) -> Optional[float]:
+    return (percentile([abs(p - period * 1e3) for p in found['periods_ms']], 0.99)
+            if found['periods_ms'] else None)
+
+
 def row(args, caller: Caller, hertz: str) -> Dict:
     """One rate: 8 drives in CSP, SYNC every 1/hertz, the controller answering each cycle."""
     period = RATES[hertz]
     bus = UdpBus()
     helpers: Dict[str, Child] = {}
     node = controller = None
-    record = ','.join(hex(cob_id) for cob_id in (SYNC, *(RPDO_1 + n for n in DRIVES)))
     try:
         helpers['drives'] = start_helper(
             f'{hertz} Hz drives', 'drives', bus, '--nodes', ','.join(map(str, DRIVES)),
             '--transmission-type', '1', '--shared-socket')
         helpers['reader'] = start_helper(f'{hertz} Hz reader', 'reader', bus,
-                                         '--record', record)
+                                         '--record', RECORDED)
         node = NodeProcess(bus, {'drives.nodes': f'[{",".join(map(str, DRIVES))}]',
                                  'sync.period': str(period)},
                            os.path.join(args.output, f'control_rate_{hertz}_node.log'))
@@ -251,12 +322,8 @@ def row(args, caller: Caller, hertz: str) -> Dict:
         names = thread_names(node.pid)
         states_before = controller.states
         threads_before = thread_ticks(node.pid)
-        cpu_before = {name: proc_cpu_seconds(pid) for name, pid in pids.items()}
-        started = time.monotonic()
-        time.sleep(args.seconds)
-        cpu_after = {name: proc_cpu_seconds(pid) for name, pid in pids.items()}
+        cpu, elapsed = cpu_over(pids, args.seconds)
         threads_after = thread_ticks(node.pid)
-        elapsed = time.monotonic() - started
         states = controller.states - states_before
         recorded = _stats(helpers['reader'])
         with controller._lock:
@@ -275,7 +342,6 @@ def row(args, caller: Caller, hertz: str) -> Dict:
             node.close()
         for helper in reversed(list(helpers.values())):
             helper.stop()
-    cpu = {name: 100 * (cpu_after[name] - cpu_before[name]) / elapsed for name in pids}
     by_thread: Dict[str, float] = {}
     for tid, ticks in threads_after.items():
         name = names.get(tid, 'native (rclpy, DDS)')
@@ -289,8 +355,7 @@ def row(args, caller: Caller, hertz: str) -> Dict:
         'syncs': found['syncs'], 'joint_states': states, 'incomplete_states': incomplete,
         'tpdo_cycles_missed': max(0, found['syncs'] - states),
         'rpdo_missing': found['rpdo_missing'], 'intervals': found['intervals'],
-        'sync_error_p99_ms': (percentile([abs(p - period * 1e3) for p in found['periods_ms']],
-                                         0.99) if found['periods_ms'] else None),
+        'sync_error_p99_ms': _sync_error_p99(found, period),
         'latency_p50_ms': percentile(found['latencies_ms'], 0.5) if found['latencies_ms']
         else None,
         'latency_p99_ms': percentile(found['latencies_ms'], 0.99) if found['latencies_ms']
@@ -331,6 +396,21 @@ def table(rows: Dict[str, Dict]) -> str:
                      f'python-can receiver {result["reader_cpu"]:.1f} % | '
                      f'{result["ratio"]:.2f} | < {CPU_TARGET:g} % and <= {RECEIVER_TARGET} x '
                      f'| {_met(cpu_met)} |')
+        if result.get('floor_ratio') is not None:
+            lines.append(
+                f'| {title}: the floor, the least any gateway does (SYNC, take the frames, '
+                f'joint_states a SYNC, RPDOs from joint_commands; no checks) | '
+                f'{result["floor_cpu"]:.1f} % of a core | bare python-can receiver '
+                f'{result["floor_reader_cpu"]:.1f} % (its own run) | '
+                f'{result["floor_ratio"]:.2f}; node to floor '
+                f'{result["node_cpu"] / result["floor_cpu"]:.2f} | (<= {RECEIVER_TARGET} x '
+                f'the receiver) | {_met(result["floor_ratio"] <= RECEIVER_TARGET)} |')
+            lines.append(
+                f'| {title}: the floor\'s cycles | RPDOs missing {result["floor_rpdo_missing"]} '
+                f'of {max(result["floor_syncs"] - 1, 0) * len(DRIVES)}; SYNC period error p99 '
+                f'{_ms(result["floor_sync_error_p99_ms"])}; joint_commands to RPDO p50 '
+                f'{_ms(result["floor_latency_p50_ms"])} | | | (0; <= {SYNC_ERROR_TARGET} ms; '
+                f'<= {LATENCY_TARGETS[0]} ms) | |')
         missed = result['rpdo_missing'] + result['tpdo_cycles_missed']
         lines.append(f'| {title}: cycles missed in {result["window_s"]:.0f} s | RPDOs missing '
                      f'{result["rpdo_missing"]} of {result["intervals"] * len(DRIVES)}; SYNCs '
@@ -368,6 +448,8 @@ def main(argv=None) -> int:
         for hertz in args.rates:
             try:
                 rows[hertz] = row(args, caller, hertz)
+                progress(f'control rate: the floor at {hertz} Hz')
+                rows[hertz].update(floor_row(args, caller, hertz))
             except (RuntimeError, ChildFailed) as error:
                 problems.append(f'{hertz} Hz: {error}')
                 progress(f'control rate: {hertz} Hz failed: {error}')

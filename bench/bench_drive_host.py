@@ -21,7 +21,13 @@ up and then answers commands (one JSON object a line) on standard input until ``
 * ``relay``: a bare rclpy node that takes a ``std_msgs/Float64`` (subscribed best effort, as
   the gateway subscribes targets) and sends it as one CAN frame, laid out as a drive's RPDO 2
   (target velocity INTEGER32, target torque INTEGER16) on COB-ID 0x37F, which no simulated
-  drive takes: the floor of the gateway's target path, between the same kinds of process.
+  drive takes: the floor of the gateway's target path, between the same kinds of process;
+* ``floor``: what any gateway of the control-rate row must do at the least, with no CANopen
+  of its own: start the drives (NMT), send SYNC every ``--period`` s (python-can's periodic
+  sending, as the gateway's), take every frame, publish one ``sensor_msgs/JointState`` of
+  the drives' positions on ``--namespace``/joint_states once a SYNC's two TPDOs of every
+  drive are in, and send each ``joint_commands`` message's positions as the drives' RPDO 1
+  frames (controlword 0x0F, target, CSP). No checks, no state, no stops.
 """
 
 import argparse
@@ -419,8 +425,81 @@ def run_relay(args, bus_options: Dict) -> None:
         bus.shutdown()
 
 
+def run_floor(args, bus_options: Dict) -> None:
+    """Do the least a gateway of the control-rate row must do (see the module's text)."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.experimental import EventsExecutor
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+
+    bus = _bus(args, bus_options)
+    rclpy.init()
+    node = rclpy.create_node('floor', namespace=args.namespace)
+    qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                     reliability=ReliabilityPolicy.RELIABLE)
+    states = node.create_publisher(JointState, 'joint_states', qos)
+    drives = sorted(args.nodes)
+    names = [f'node_{node_id}' for node_id in drives]
+    rpdos = {name: 0x200 + node_id for name, node_id in zip(names, drives, strict=True)}
+    positions = dict.fromkeys(drives, 0)
+
+    def command(message: JointState) -> None:
+        for name, position in zip(message.name, message.position, strict=False):
+            bus.send(can.Message(arbitration_id=rpdos[name], is_extended_id=False,
+                                 data=struct.pack('<Hib', 0x0F, round(position), 8)))
+
+    node.create_subscription(JointState, 'joint_commands', command, qos)
+    done = threading.Event()
+
+    def take() -> None:
+        tpdos = 0
+        while not done.is_set():
+            message = bus.recv(0.5)
+            if message is None:
+                continue
+            cob_id = message.arbitration_id
+            if cob_id == SYNC_COB_ID:
+                tpdos = 0
+            elif cob_id & 0x780 in (0x180, 0x280) and cob_id & 0x7F in positions:
+                if cob_id & 0x780 == 0x280:
+                    positions[cob_id & 0x7F] = struct.unpack_from('<i', message.data)[0]
+                tpdos += 1
+                if tpdos == 2 * len(drives):
+                    states.publish(JointState(name=names, position=[
+                        float(positions[node_id]) for node_id in drives]))
+
+    bus.send(can.Message(arbitration_id=0x000, data=bytes([1, 0]), is_extended_id=False))
+    sync = bus.send_periodic(can.Message(arbitration_id=SYNC_COB_ID, data=b'',
+                                         is_extended_id=False), args.period)
+    taker = threading.Thread(target=take, daemon=True)
+    taker.start()
+    executor = EventsExecutor()  # as the gateway's node spins
+    executor.add_node(node)
+
+    def spin() -> None:
+        while not done.is_set():
+            executor.spin_once(timeout_sec=0.1)
+
+    spinner = threading.Thread(target=spin, daemon=True)
+    spinner.start()
+    try:
+        _serve()
+    except ExternalShutdownException:
+        pass
+    finally:
+        done.set()
+        sync.stop()
+        spinner.join()
+        taker.join()
+        executor.shutdown(timeout_sec=2.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+        bus.shutdown()
+
+
 MODES = {'drives': run_drives, 'devices': run_devices, 'bootloader': run_bootloader,
-         'reader': run_reader, 'relay': run_relay}
+         'reader': run_reader, 'relay': run_relay, 'floor': run_floor}
 
 
 def main(argv=None) -> int:
@@ -446,6 +525,9 @@ def main(argv=None) -> int:
                         default=set(), help='reader mode: COB-IDs whose frames are kept, '
                                             'e.g. 0x181,0x201')
     parser.add_argument('--topic', default='/bench_relay/target', help='relay mode')
+    parser.add_argument('--namespace', default='/bench_floor', help='floor mode')
+    parser.add_argument('--period', type=float, default=0.004,
+                        help='floor mode: the SYNC period, seconds')
     args = parser.parse_args(argv)
     exit_on_sigterm()
     try:
