@@ -647,3 +647,28 @@ def test_a_stop_after_a_stall_of_the_node_is_not_undone_at_the_sync(rig):
         return
     pytest.skip('the burst of SYNCs never came mid-cycle, or the target or the halt '
                 'came late (machine too slow)')
+
+
+# Once a defect: with a second SYNC producer on the bus (another master, at the same period),
+# the median of the last 15 SYNCs heard fell on ours and on the other's in turn, and the
+# schedule jumped from one to the other on every SYNC heard: the quarter period after the
+# SYNC (frames waiting for it), the quarter before (a stream's repeats) and whether a target
+# is in before the next SYNC moved with it, cycle after cycle.
+@pytest.mark.parametrize('other', [0.3, 0.6])
+def test_a_second_sync_producer_does_not_move_the_schedule_every_cycle(other):
+    period = 0.004
+    producer = SyncProducer(_Supervisor(), _Network(), period)
+    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
+    origin = producer.next_point(0.0)
+    delays = [0.0002, 0.0001, 0.0003, 0.0002]
+    placed = []
+    for cycle in range(40):
+        delay = delays[cycle % len(delays)]
+        for phase in (0.0, other * period):  # ours, then the other producer's
+            producer._on_sync_heard(0x80, bytearray(), origin + cycle * period + phase + delay)
+            if cycle >= 8:  # both heard for a while
+                placed.append(sync_phase(producer, origin, period))
+    assert max(placed) - min(placed) <= 0.0002 + 1e-9, (
+        f'the schedule moved between {min(placed) * 1000:.2f} and {max(placed) * 1000:.2f} ms '
+        f'after the SYNC')
+    producer.stop()
