@@ -672,3 +672,26 @@ def test_a_second_sync_producer_does_not_move_the_schedule_every_cycle(other):
         f'the schedule moved between {min(placed) * 1000:.2f} and {max(placed) * 1000:.2f} ms '
         f'after the SYNC')
     producer.stop()
+
+
+def test_a_bus_outage_is_no_sync_period_error_in_diagnostics():
+    # The bus goes down for a second and comes back: SYNC starts again on the new bus. The
+    # interval from the last SYNC before the outage to the first after it is no period of
+    # the SYNC: /diagnostics showed it as the largest period error, and a measured period
+    # far above the one produced, for the next 200 SYNCs.
+    period = 0.004
+    producer = SyncProducer(_Supervisor(), _Network(), period)
+    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
+    origin = producer.next_point(0.0)
+    for cycle in range(10):
+        producer._on_sync_heard(0x80, bytearray(), origin + cycle * period + 0.0002)
+    producer._on_bus_change(BusStatus(False, 'the adapter was unplugged', 0, 0, 0, 0))
+    producer._on_bus_change(BusStatus(True, '', 1, 0, 0, 0))
+    again = producer.next_point(0.0) + 1.0  # the bus reopened a second later
+    for cycle in range(10):
+        producer._on_sync_heard(0x80, bytearray(), again + cycle * period + 0.0002)
+    status = producer.status()
+    assert (status.starts, status.heard) == (2, 20)
+    assert status.measured_period == pytest.approx(period, abs=1e-6)
+    assert status.measured_jitter == pytest.approx(0.0, abs=1e-6)
+    producer.stop()

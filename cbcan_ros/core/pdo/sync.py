@@ -192,6 +192,8 @@ class SyncProducer:
             return False
         self._task_start = self._grid_start = grid_start
         self._phases.clear()
+        # The gap since a SYNC heard before (a bus down meanwhile) is no period of SYNC.
+        self._last_heard = None
         self._starts += 1
         return True
 
