@@ -14,6 +14,7 @@ import itertools
 import struct
 
 import pytest
+from test_drive_layouts import writes_on_the_bus
 from test_drive_safety import ANSWER, DriveRig, NODE, RPDOS, shown, VELOCITY
 
 from cbcan_ros.simulation.cia402_states import State
@@ -78,6 +79,11 @@ def leave_stale_targets(drive) -> None:
     drive.set_value(TARGET_POSITION, 0, struct.pack('<i', position + 5000))
 
 
+# The controlword of the first step of an enable from each state it starts in.
+FIRST_STEP = {'SWITCH_ON_DISABLED': 0x06, 'READY_TO_SWITCH_ON': 0x07, 'SWITCHED_ON': 0x0F,
+              'fault reset': 0x06}
+
+
 def bring_to(axis: DriveRig, start: str) -> None:
     """Bring the disabled drive to the state ``start`` that an enable starts from."""
     if start == 'fault reset':
@@ -120,9 +126,18 @@ def test_enable_holds_the_axis_whatever_targets_the_drive_was_left_with(rig, lay
         entry = entries[count]
         index = TARGET_OF_MODE[mode]
         holding = entry['position'] if index == TARGET_POSITION else 0
+        frames = axis.recorder.messages(since)
         assert (entry['mode'], entry[index]) == (mode, holding), (
             f'enable {mode} from {start}: the drive entered OPERATION_ENABLED with {entry}; '
-            f'frames: {shown(axis.recorder.messages(since))}')
+            f'frames: {shown(frames)}')
+        # On the bus: the holding target in the first step's write or before it, never after
+        # its controlword (the frames of a write in order, the controlword's last).
+        writes = writes_on_the_bus(frames, layout)
+        step = next(number for number, values in enumerate(writes)
+                    if values.get(CONTROLWORD) == FIRST_STEP[start])
+        assert any(values.get(index) == holding for values in writes[:step + 1]), (
+            f'enable {mode} from {start}: the first step went before the holding target; '
+            f'writes: {writes}')
         assert axis.command('disable').success
 
 
@@ -163,3 +178,42 @@ def test_enable_in_the_mode_set_another_way_keeps_that_mode_and_starts_no_motion
         f'frames: {shown(axis.recorder.messages(since))}')
     assert enabled.mode == PP
     assert axis.drive.velocity == 0
+
+
+# Once a defect: before a mode change, the holding target goes in a write of its own, and in
+# an RPDO that maps the controlword too (make run's RPDO 1, every RPDO of the vendor layout)
+# that write repeats the controlword the gateway commanded last: "enable operation", from
+# before the drive stopped by itself. The drive took it as transition 16 and was
+# OPERATION_ENABLED again in CSV, running at the velocity the stream had left in 0x60FF,
+# before the mode change came; enable answered success in CSP, set_mode in CSP.
+@pytest.mark.parametrize('layout', ['combined', 'vendor'])
+@pytest.mark.parametrize('command', ['enable', 'set_mode'])
+def test_a_mode_change_of_a_drive_that_quick_stopped_by_itself_starts_no_motion(rig, layout,
+                                                                                command):
+    # The drive stops by itself (its quick-stop input) while streaming in CSV and stays in
+    # QUICK_STOP_ACTIVE (0x605A 6), where a controlword "enable operation" takes it back to
+    # OPERATION_ENABLED (CiA 402 transition 16) in the mode it is in, on the target it holds.
+    axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos(layout))
+    axis.drive.set_value(0x605A, 0, struct.pack('<h', 6))
+    axis.enable_moving()
+    axis.recorder.first(lambda m: m.arbitration_id in RPDOS, 'a target in an RPDO')
+    axis.stop_streams()
+
+    def stopped_by_itself() -> bool:
+        if axis.drive.drive_state == 'OPERATION_ENABLED':  # again, by a target still coming
+            axis.drive.set_value(CONTROLWORD, 0, struct.pack('<H', 0x02))  # its quick stop
+        return (axis.drive.drive_state == axis.latest().state == 'QUICK_STOP_ACTIVE'
+                and axis.drive.velocity == 0)
+    wait_until(stopped_by_itself, ANSWER, 'the drive standing in QUICK_STOP_ACTIVE, shown')
+    entries = entries_to_operation_enabled(axis.drive)
+    since = axis.recorder.mark()
+    answer = axis.command(command, CSP)
+    axis.recorder.mark()
+    assert answer.success, answer.message
+    expected = [(CSP, 0)] if command == 'enable' else []
+    assert [(entry['mode'], entry[TARGET_POSITION] - entry['position'])
+            for entry in entries] == expected, (
+        f'the drive entered OPERATION_ENABLED with {entries}, answered {answer.message!r}; '
+        f'frames: {shown(axis.recorder.messages(since))}')
+    if command == 'set_mode':
+        assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE'

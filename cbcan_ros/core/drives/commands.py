@@ -280,8 +280,10 @@ class DriveCommands:
         """Hold the axis (``hold``, else ``mode``'s holding target), then change to ``mode``.
 
         The holding target goes in a write of its own before the mode: the drive must not
-        take the old mode's target in the new one.
+        take the old mode's target in the new one. Neither write may enable a drive that
+        stopped by itself meanwhile (``DriveService.keep_state``).
         """
+        self._service.keep_state(drive)
         hold = await self._hold(drive, mode) if hold is None else hold
         if hold:
             await self._send(drive, hold)
