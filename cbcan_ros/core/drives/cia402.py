@@ -68,6 +68,10 @@ SHUTDOWN = 0x06
 SWITCH_ON = 0x07
 ENABLE_OPERATION = 0x0F
 COMMAND_BITS = 0x8F  # bits 0..3 and 7
+# The command that keeps a drive in each state it does not leave by itself.
+KEEPS = {SWITCH_ON_DISABLED: DISABLE_VOLTAGE, READY_TO_SWITCH_ON: SHUTDOWN,
+         SWITCHED_ON: SWITCH_ON, OPERATION_ENABLED: ENABLE_OPERATION,
+         QUICK_STOP_ACTIVE: QUICK_STOP}
 NEW_SET_POINT = 1 << 4  # also homing operation start
 CHANGE_SET_IMMEDIATELY = 1 << 5
 RELATIVE = 1 << 6

@@ -280,15 +280,30 @@ class DriveCommands:
         """Hold the axis (``hold``, else ``mode``'s holding target), then change to ``mode``.
 
         The holding target goes in a write of its own before the mode: the drive must not
-        take the old mode's target in the new one.
+        take the old mode's target in the new one. Neither write may enable a drive that
+        stopped by itself meanwhile (``DriveService.keep_state``).
         """
+        self._service.keep_state(drive)
         hold = await self._hold(drive, mode) if hold is None else hold
         if hold:
             await self._send(drive, hold)
-        if self._service.status(drive.node_id).mode != mode:
+        if not self._shows_mode(drive, mode):
             drive.pp_goal = None  # the set-point of another mode is no base for a move
             await self._send(drive, {cia402.MODE: mode})
             await self._until(drive, lambda status: status.mode == mode)
+
+    def _shows_mode(self, drive, mode: int) -> bool:
+        """Return whether the drive shows ``mode``; if so, its frames carry that mode now.
+
+        The mode may have been set another way (``sdo_write``, another master, a tool): the
+        gateway's own last mode, in an RPDO that maps 0x6060 beside the controlword, would
+        put the old mode back with the next step, and the drive would run on that mode's
+        target, whatever was left in it.
+        """
+        if self._service.status(drive.node_id).mode != mode:
+            return False
+        drive.objects.know({cia402.MODE: mode})
+        return True
 
     # The commands.
 
@@ -315,7 +330,7 @@ class DriveCommands:
         mode = mode or self._service.status(drive.node_id).mode
         hold = await self._hold(drive, mode)
         held = hold.get(cia402.TARGET_POSITION, 0)
-        if self._service.status(drive.node_id).mode != mode:
+        if not self._shows_mode(drive, mode):
             await self._change_mode(drive, mode, hold)
             hold = {}
         self._service.set_halted(drive, '')
@@ -530,7 +545,7 @@ class DriveCommands:
             return why or f'set-points taken; node {node_id} reached {here} (drive units)'
 
     async def _change_to_pp(self, drive) -> None:
-        if self._service.status(drive.node_id).mode != cia402.PROFILE_POSITION:
+        if not self._shows_mode(drive, cia402.PROFILE_POSITION):
             await self._change_mode(drive, cia402.PROFILE_POSITION)
 
     async def _new_set_point(self, drive, position: int) -> int:

@@ -329,6 +329,25 @@ class DriveService:
         """Read by SDO at once what no TPDO brings (after an SDO controlword, say)."""
         poll(drive, self._lock, self.read_feedback, now=True)
 
+    def keep_state(self, drive: DriveRecord) -> None:
+        """Have frames that repeat the controlword repeat one that keeps the drive's state.
+
+        A write without a controlword, in an RPDO that maps it, repeats the one the gateway
+        commanded last (``frames``). A drive may have left the state that word put it in by
+        itself (its quick-stop input, another master): "enable operation" repeated would
+        take it from QUICK_STOP_ACTIVE (quick stop options 5..8, transition 16) or from
+        SWITCHED_ON back to OPERATION_ENABLED, in the mode it is in, on whatever target that
+        mode holds. Nothing is sent here.
+        """
+        with drive.sending:
+            with self._lock:
+                word = cia402.KEEPS.get(shown(drive).state)
+                if (word is None or drive.controlword & cia402.COMMAND_BITS
+                        != cia402.ENABLE_OPERATION or word == cia402.ENABLE_OPERATION):
+                    return
+                drive.controlword = word
+            drive.objects.know({cia402.CONTROLWORD: word})
+
     def set_halted(self, drive: DriveRecord, by: str) -> None:
         """Record who halted the drive ('' = nobody), and show it."""
         with self._lock:

@@ -192,6 +192,8 @@ class SyncProducer:
             return False
         self._task_start = self._grid_start = grid_start
         self._phases.clear()
+        # The gap since a SYNC heard before (a bus down meanwhile) is no period of SYNC.
+        self._last_heard = None
         self._starts += 1
         return True
 
@@ -236,13 +238,13 @@ class SyncProducer:
     def _on_sync_heard(self, _can_id: int, _data: bytearray, timestamp: float) -> None:
         with self._lock:
             self._heard += 1
-            if self._last_heard is not None:
-                self._intervals.append(timestamp - self._last_heard)
-            self._last_heard = timestamp
+            previous, self._last_heard = self._last_heard, timestamp
+            if previous is not None:
+                self._intervals.append(timestamp - previous)
             if self._task is not None:
-                self._follow_heard(timestamp)
+                self._follow_heard(timestamp, previous)
 
-    def _follow_heard(self, stamp: float) -> None:
+    def _follow_heard(self, stamp: float, previous: Optional[float]) -> None:
         """Place the grid on the SYNCs heard back: their median phase (lock held).
 
         python-can's thread starts its own grid when it first runs, which on a busy machine
@@ -252,8 +254,17 @@ class SyncProducer:
         SYNC is, and one heard late by a stall (even by more than half a period, which
         reads as early) does not move it. Adapters that do not echo their own frames leave
         the grid where the task was started.
+
+        Only a SYNC heard about a period after the one before places it (the first of the
+        task aside): after a stall python-can's thread sends the SYNCs it missed back to
+        back, and a receiving thread held up takes those it missed at once; such a burst,
+        eight or more, would outnumber the SYNCs on the grid among the last 15. Nor does a
+        SYNC of another producer less than half a period after one of ours.
         """
         period = self.period
+        if self._phases and (previous is None
+                             or not period / 2 < stamp - previous < period * 3 / 2):
+            return
         self._phases.append((stamp - self._task_start) % period)
         reference = (self._grid_start - self._task_start) % period
         if len(self._phases) == 1:
