@@ -460,8 +460,9 @@ class BootService:
 
         def sdo(accesses, timeout):
             def stop(results) -> Optional[str]:
-                failed = next((r for r in results if not r.success), None)
-                if failed is not None:
+                # Asked before each access: the ones before the last were looked at already
+                # (a batch stops at the first failure; each access after it fails too).
+                if results and not results[-1].success:
                     return 'an earlier access of the boot failed'
                 return ended() or None
             return self._sdo_batch(accesses, timeout, stop).result()
