@@ -36,6 +36,7 @@ devices' time, as on a real bus.
 
 import argparse
 import configparser
+from itertools import pairwise
 import os
 import re
 import statistics
@@ -148,7 +149,9 @@ def analyse(frames: List, node_ids=DEVICES) -> Dict:
     """Return a round's figures from its frames (kernel timestamps, s; ``reader --record``).
 
     ``total_ms``: the reset frame to the last NMT start frame. Per device: the boot-up, its
-    first SDO request, its last SDO answer and its NMT start, relative to the reset.
+    first SDO request, its last SDO answer and its NMT start, relative to the reset. Per
+    transfer, over every device: the device's answer after the request (``answer_ms``) and
+    the master's next request after an answer (``turnaround_ms``), p50.
     """
     frames = sorted(frames)
     resets = [time for time, cob_id, data in frames
@@ -158,7 +161,16 @@ def analyse(frames: List, node_ids=DEVICES) -> Dict:
     reset = resets[-1]
     after = [(time - reset, cob_id, data) for time, cob_id, data in frames if time >= reset]
     devices = {}
+    answer_s: List[float] = []
+    turnaround_s: List[float] = []
     for node_id in node_ids:
+        sdo = [(time, cob_id) for time, cob_id, _ in after
+               if cob_id in (0x600 + node_id, 0x580 + node_id)]
+        for (sent, first), (came, second) in pairwise(sdo):
+            if (first, second) == (0x600 + node_id, 0x580 + node_id):
+                answer_s.append(came - sent)
+            elif (first, second) == (0x580 + node_id, 0x600 + node_id):
+                turnaround_s.append(came - sent)
         boot_up = next((t for t, cob_id, data in after
                         if cob_id == 0x700 + node_id and data == '00'), None)
         requests = [t for t, cob_id, _ in after if cob_id == 0x600 + node_id]
@@ -194,6 +206,8 @@ def analyse(frames: List, node_ids=DEVICES) -> Dict:
         'sdo_round_trip_ms': statistics.median(
             (d['last_answer'] - d['first_request']) / max(1, d['sdo_transfers'] - 1)
             for d in devices.values()) * 1e3,
+        'answer_ms': statistics.median(answer_s) * 1e3 if answer_s else float('nan'),
+        'turnaround_ms': statistics.median(turnaround_s) * 1e3 if turnaround_s else float('nan'),
     }
 
 
@@ -407,7 +421,7 @@ def summary(side: Side) -> Dict:
     figures = {key: statistics.median(r[key] for r in rounds)
                for key in ('total_ms', 'last_boot_up_ms', 'last_answer_ms',
                            'boot_up_to_first_sdo_ms', 'sdo_span_ms', 'last_answer_to_start_ms',
-                           'sdo_round_trip_ms')}
+                           'sdo_round_trip_ms', 'answer_ms', 'turnaround_ms')}
     # Transfers are counted in the rounds whose every frame reached the receiver.
     whole = [r['sdo_transfers'] for r in rounds if not r['receiver_drops']]
     figures['sdo_transfers'] = statistics.median(whole) if whole else float('nan')
@@ -462,7 +476,9 @@ def _notes(row: Dict) -> List[str]:
             f'{shown}: the last boot-up {side["last_boot_up_ms"]:.1f} ms after the reset; per '
             f'device (median) boot-up to its first SDO request '
             f'{side["boot_up_to_first_sdo_ms"]:.1f} ms, first request to last answer '
-            f'{side["sdo_span_ms"]:.1f} ms ({side["sdo_round_trip_ms"]:.2f} ms a transfer), '
+            f'{side["sdo_span_ms"]:.1f} ms ({side["sdo_round_trip_ms"]:.2f} ms a transfer: the '
+            f'device answering {side["answer_ms"]:.2f} ms after a request, the next request '
+            f'{side["turnaround_ms"]:.2f} ms after an answer, p50), '
             f'last answer to its NMT start {side["last_answer_to_start_ms"]:.1f} ms; the last '
             f'SDO answer of all {side["last_answer_ms"]:.1f} ms after the reset; writes '
             f'taken per device {side["writes_per_device"][0]}-{side["writes_per_device"][1]}; '

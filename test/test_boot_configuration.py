@@ -218,6 +218,28 @@ def test_a_reset_device_comes_back_configured_and_is_started_after_its_last_writ
     assert max(p for p, _ in downloads(after)) < starts(after)[0]
 
 
+def boot_threads(node_id: int = NODE):
+    """Return the gateway's boot threads of a node now."""
+    return [thread for thread in threading.enumerate() if thread.name == f'boot-{node_id}']
+
+
+def test_every_boot_of_a_device_runs_on_its_one_boot_thread(rig):
+    """A boot-up wakes the device's boot thread: the receive thread starts no thread.
+
+    Starting one there waited for the new thread to run while every frame behind the
+    boot-up (other devices' SDO answers among them) waited too.
+    """
+    gateway, devices, frames = rig()
+    wait_for_boot(gateway, 'BOOTED')
+    first = boot_threads()
+    assert len(first) == 1, first
+    for boots in (2, 3):
+        assert gateway.call('nmt_command', node_id=NODE, command=129).success  # reset node
+        wait_for_boot(gateway, 'BOOTED', boots=boots)
+        assert boot_threads() == first
+    assert not differences(devices[NODE])
+
+
 def test_a_power_cycled_device_comes_back_configured(rig):
     gateway, devices, frames = rig()
     wait_for_boot(gateway, 'BOOTED')

@@ -57,7 +57,7 @@ class BootAnswer:
 
 
 class _Device:
-    def __init__(self, plan: DevicePlan):
+    def __init__(self, plan: DevicePlan, mutex):
         self.plan = plan
         self.state = BootState(plan.node_id, plan.name, WAITING if plan.boot else IGNORED,
                                message='' if plan.boot else 'boot: false in the bus '
@@ -65,7 +65,12 @@ class _Device:
         self.wanted = 0            # boots asked for; each ends the one running
         self.done = 0              # the last boot that ended (with a verdict or not)
         self.booted_itself = False  # the boot wanted was started by its own boot-up
-        self.running = False
+        self.running = False       # a boot is asked for or runs (its thread is not idle)
+        # The device's boot thread, started once and idle between boots: a boot-up (handled
+        # on the bus receive thread) only wakes it. Starting a thread there waited for the
+        # new thread to run, holding up every frame behind the boot-up.
+        self.thread: Optional[threading.Thread] = None
+        self.wake = threading.Condition(mutex)  # the service's lock; told of a boot wanted
         self.ready = False         # booted, waiting to be started
         self.awaiting_boot_up = False
         self.boot_ups = 0          # boot-ups heard while awaited
@@ -102,9 +107,10 @@ class BootService:
         self._drive_enabled = drive_enabled
         self._sdo_stream = sdo_stream
         self._program = program
-        self._devices: Dict[int, _Device] = {plan.node_id: _Device(plan)
+        mutex = threading.RLock()
+        self._devices: Dict[int, _Device] = {plan.node_id: _Device(plan, mutex)
                                              for plan in settings.plans}
-        self._lock = threading.Condition()
+        self._lock = threading.Condition(mutex)
         self._closing = False
         self._bus_down = ''
         self._listeners: List[Callable[[], None]] = []
@@ -179,6 +185,8 @@ class BootService:
         with self._lock:
             self._closing = True
             self._lock.notify_all()
+            for device in self._devices.values():
+                device.wake.notify()
             waiters = [waiter for device in self._devices.values() for waiter in device.waiters]
             for device in self._devices.values():
                 device.waiters = []
@@ -297,15 +305,21 @@ class BootService:
         device.booted_itself = booted_itself
         device.ready = False
         self._lock.notify_all()
-        if not device.running:
-            device.running = True
-            threading.Thread(target=self._run, args=(device,), daemon=True,
-                             name=f'boot-{device.plan.node_id}').start()
+        device.running = True
+        if device.thread is None:
+            device.thread = threading.Thread(target=self._run, args=(device,), daemon=True,
+                                             name=f'boot-{device.plan.node_id}')
+            device.thread.start()
+        else:
+            device.wake.notify()
 
     def _run(self, device: _Device) -> None:
         while True:
             with self._lock:
-                if self._closing or device.done >= device.wanted:
+                while not self._closing and device.done >= device.wanted:
+                    device.running = False
+                    device.wake.wait()
+                if self._closing:
                     device.running = False
                     return
                 generation, booted_itself = device.wanted, device.booted_itself
@@ -460,8 +474,9 @@ class BootService:
 
         def sdo(accesses, timeout):
             def stop(results) -> Optional[str]:
-                failed = next((r for r in results if not r.success), None)
-                if failed is not None:
+                # Asked before each access: the ones before the last were looked at already
+                # (a batch stops at the first failure; each access after it fails too).
+                if results and not results[-1].success:
                     return 'an earlier access of the boot failed'
                 return ended() or None
             return self._sdo_batch(accesses, timeout, stop).result()

@@ -93,7 +93,13 @@ class StrictSdoClient(SdoClient):
 
     def __init__(self, rx_cobid: int, tx_cobid: int, od):
         super().__init__(rx_cobid, tx_cobid, od)
-        self.responses: Optional[queue.Queue] = None  # a queue only while a transfer runs
+        # A queue only while a transfer runs. queue.SimpleQueue (C): a queue.Queue costs a
+        # lock and three conditions to make, and Python code on each put and get, for every
+        # transfer, on the receive thread and the transfer's thread both.
+        self.responses: Optional[queue.SimpleQueue] = None
+        # The devices' aborts of this transfer as they arrived, (arrival, code): a block
+        # download looks for one before each segment without taking frames from the queue.
+        self._device_aborts: list = []
         # Reentrant: garbage collection may finalize a stream inside a locked section.
         self._lock = threading.RLock()
         self._mux = (0, 0)
@@ -131,7 +137,8 @@ class StrictSdoClient(SdoClient):
             self._aborted = None
             self._cancelled = None
             self._abort_on_cancel = None
-            self.responses = queue.Queue()
+            self._device_aborts = []
+            self.responses = queue.SimpleQueue()
         try:
             return run()
         except BusDown:
@@ -183,7 +190,10 @@ class StrictSdoClient(SdoClient):
         """Queue a response frame with ``timestamp``: when the receive path took it."""
         responses = self.responses
         if responses is not None:
-            responses.put((timestamp, bytes(data)))
+            frame = bytes(data)
+            if frame[:1] == b'\x80' and len(frame) >= 8:  # an abort: noted for a block
+                self._device_aborts.append((timestamp, struct.unpack_from('<L', frame, 4)[0]))
+            responses.put((timestamp, frame))
 
     def send_request(self, request) -> None:
         """Send a request frame, unless the transfer has already ended."""
@@ -240,13 +250,10 @@ class StrictSdoClient(SdoClient):
 
         The frames stay queued: what is not an abort is awaited as before.
         """
-        responses = self.responses
-        if responses is None or not responses.queue:
+        aborts = self._device_aborts
+        if not aborts:
             return  # the usual case, looked at before every segment: nothing arrived
-        with responses.mutex:
-            code = next((struct.unpack_from('<L', frame, 4)[0] for arrived, frame
-                         in responses.queue if frame is not _Cancel and len(frame) >= 8
-                         and frame[0] == _ABORT and arrived > self._began), None)
+        code = next((code for arrived, code in aborts if arrived > self._began), None)
         if code is not None:
             with self._lock:
                 if self._aborted is None:
