@@ -383,8 +383,6 @@ def run_reader(args, bus_options: Dict) -> None:
 def run_relay(args, bus_options: Dict) -> None:
     """Send every Float64 of ``--topic`` as one frame on the bus, from the subscription."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException
-    from rclpy.experimental import EventsExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import Float64
 
@@ -399,15 +397,29 @@ def run_relay(args, bus_options: Dict) -> None:
         bus.send(can.Message(arbitration_id=RELAY_COB_ID, data=data, is_extended_id=False))
 
     node.create_subscription(Float64, args.topic, relay, best_effort)
-    executor = EventsExecutor()  # as the gateway's node spins
+    try:
+        _spin_and_serve(node, threading.Event())
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        bus.shutdown()
+
+
+def _spin_and_serve(node, done: threading.Event) -> None:
+    """Spin ``node`` as the gateway's node spins, answering commands until ``stop``.
+
+    ``done`` is set on the way out, before the executor is shut down.
+    """
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.experimental import EventsExecutor
+
+    executor = EventsExecutor()
     executor.add_node(node)
-    spinning = threading.Event()
-    spinning.set()
 
     def spin() -> None:
         # spin_once in a loop: EventsExecutor.spin() on a thread of its own took a core here
         # and ran no callback.
-        while spinning.is_set():
+        while not done.is_set():
             executor.spin_once(timeout_sec=0.1)
 
     spinner = threading.Thread(target=spin, daemon=True)
@@ -417,19 +429,14 @@ def run_relay(args, bus_options: Dict) -> None:
     except ExternalShutdownException:
         pass
     finally:
-        spinning.clear()
+        done.set()
         spinner.join()
         executor.shutdown(timeout_sec=2.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
-        bus.shutdown()
 
 
 def run_floor(args, bus_options: Dict) -> None:
     """Do the least a gateway of the control-rate row must do (see the module's text)."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException
-    from rclpy.experimental import EventsExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
 
@@ -474,25 +481,11 @@ def run_floor(args, bus_options: Dict) -> None:
                                          is_extended_id=False), args.period)
     taker = threading.Thread(target=take, daemon=True)
     taker.start()
-    executor = EventsExecutor()  # as the gateway's node spins
-    executor.add_node(node)
-
-    def spin() -> None:
-        while not done.is_set():
-            executor.spin_once(timeout_sec=0.1)
-
-    spinner = threading.Thread(target=spin, daemon=True)
-    spinner.start()
     try:
-        _serve()
-    except ExternalShutdownException:
-        pass
+        _spin_and_serve(node, done)
     finally:
-        done.set()
         sync.stop()
-        spinner.join()
         taker.join()
-        executor.shutdown(timeout_sec=2.0)
         node.destroy_node()
         rclpy.try_shutdown()
         bus.shutdown()
