@@ -191,7 +191,7 @@ class StrictSdoClient(SdoClient):
         responses = self.responses
         if responses is not None:
             frame = bytes(data)
-            if frame[:1] == b'\x80' and len(frame) >= 8:  # an abort: noted for a block
+            if len(frame) >= 8 and frame[0] == _ABORT:  # noted for a block download
                 self._device_aborts.append((timestamp, struct.unpack_from('<L', frame, 4)[0]))
             responses.put((timestamp, frame))
 

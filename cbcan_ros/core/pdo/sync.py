@@ -266,9 +266,8 @@ class SyncProducer:
                              or not period / 2 < stamp - previous < period * 3 / 2):
             return
         self._phases.append((stamp - self._task_start) % period)
-        reference = (self._grid_start - self._task_start) % period
-        if len(self._phases) == 1:
-            reference = self._phases[0]
+        reference = (self._phases[0] if len(self._phases) == 1
+                     else (self._grid_start - self._task_start) % period)
         # Each phase as the nearest one to the grid's, so the median does not wrap.
         phases = sorted(reference + (phase - reference + period / 2) % period - period / 2
                         for phase in self._phases)
