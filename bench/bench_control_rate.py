@@ -228,6 +228,17 @@ def cycles(frames: List, commands: Dict[int, float], base: float) -> Dict:
             'periods_ms': periods, 'latencies_ms': latencies, 'after_sync_ms': after_sync}
 
 
+def start_drives_and_reader(helpers: Dict[str, Child], bus: UdpBus, label: str) -> None:
+    """Start the 8 drives (synchronous PDOs, one socket) and the recording receiver on ``bus``.
+
+    Each goes into ``helpers`` as it starts, so the caller stops what did start.
+    """
+    helpers['drives'] = start_helper(
+        f'{label} drives', 'drives', bus, '--nodes', ','.join(map(str, DRIVES)),
+        '--transmission-type', '1', '--shared-socket')
+    helpers['reader'] = start_helper(f'{label} reader', 'reader', bus, '--record', RECORDED)
+
+
 def cpu_over(pids: Dict[str, int], seconds: float):
     """Return ({name: % of a core} of the processes ``pids`` over ``seconds``, the window)."""
     before = {name: proc_cpu_seconds(pid) for name, pid in pids.items()}
@@ -250,11 +261,7 @@ def floor_row(args, caller: Caller, hertz: str) -> Dict:
     controller = None
     namespace = f'/benchfloor{uuid.uuid4().hex[:8]}'
     try:
-        helpers['drives'] = start_helper(
-            f'{hertz} Hz floor drives', 'drives', bus, '--nodes', ','.join(map(str, DRIVES)),
-            '--transmission-type', '1', '--shared-socket')
-        helpers['reader'] = start_helper(f'{hertz} Hz floor reader', 'reader', bus,
-                                         '--record', RECORDED)
+        start_drives_and_reader(helpers, bus, f'{hertz} Hz floor')
         helpers['floor'] = start_helper(
             f'{hertz} Hz floor', 'floor', bus, '--nodes', ','.join(map(str, DRIVES)),
             '--namespace', namespace, '--period', str(RATES[hertz]))
@@ -300,11 +307,7 @@ def row(args, caller: Caller, hertz: str) -> Dict:
     helpers: Dict[str, Child] = {}
     node = controller = None
     try:
-        helpers['drives'] = start_helper(
-            f'{hertz} Hz drives', 'drives', bus, '--nodes', ','.join(map(str, DRIVES)),
-            '--transmission-type', '1', '--shared-socket')
-        helpers['reader'] = start_helper(f'{hertz} Hz reader', 'reader', bus,
-                                         '--record', RECORDED)
+        start_drives_and_reader(helpers, bus, f'{hertz} Hz')
         node = NodeProcess(bus, {'drives.nodes': f'[{",".join(map(str, DRIVES))}]',
                                  'sync.period': str(period)},
                            os.path.join(args.output, f'control_rate_{hertz}_node.log'))
