@@ -495,6 +495,13 @@ class _Network:
         pass
 
 
+def producing(period: float):
+    """Return (a SyncProducer whose bus came up, the first point of its schedule)."""
+    producer = SyncProducer(_Supervisor(), _Network(), period)
+    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
+    return producer, producer.next_point(0.0)
+
+
 def sync_phase(producer: SyncProducer, origin: float, period: float) -> float:
     """Return where (seconds after ``origin``, within a period) the producer puts its SYNCs."""
     return (producer.next_point(0.0) - origin) % period
@@ -513,9 +520,7 @@ def test_the_sync_schedule_moves_onto_the_syncs_heard_back():
     # python-can's thread starts its own schedule when it first runs, milliseconds after the
     # task was started on a busy machine: a stream timed on the start would race the SYNC.
     period = 0.004
-    producer = SyncProducer(_Supervisor(), _Network(), period)
-    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
-    origin = producer.next_point(0.0)
+    producer, origin = producing(period)
     producer._on_sync_heard(0x80, bytearray(), origin + 0.0034)  # 3.4 ms late, as heard
     assert abs(sync_phase(producer, origin, period) - 0.0034) < 1e-9, \
         'the schedule stayed where it started'
@@ -532,9 +537,7 @@ def test_a_sync_heard_late_by_a_stall_does_not_move_the_schedule():
     # for good; a stream's frame then raced the SYNC, and frames waiting for the SYNC went
     # out before it.
     period = 0.004
-    producer = SyncProducer(_Supervisor(), _Network(), period)
-    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
-    origin = producer.next_point(0.0)
+    producer, origin = producing(period)
     delays = [0.0002, 0.0001, 0.0003, 0.0026, 0.0002, 0.0035, 0.0001, 0.0002, 0.0003]
     for cycle, delay in enumerate(delays):
         producer._on_sync_heard(0x80, bytearray(), origin + cycle * period + delay)
@@ -553,9 +556,7 @@ def test_a_sync_heard_late_by_a_stall_does_not_move_the_schedule():
 @pytest.mark.parametrize('burst', [8, 12, 40])
 def test_a_burst_of_syncs_after_a_stall_does_not_move_the_schedule(burst):
     period = 0.004
-    producer = SyncProducer(_Supervisor(), _Network(), period)
-    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
-    origin = producer.next_point(0.0)
+    producer, origin = producing(period)
     delays = [0.0002, 0.0001, 0.0003, 0.0002, 0.0001, 0.0002]
     cycle = 0
     for delay in delays:  # heard as usual
@@ -657,9 +658,7 @@ def test_a_stop_after_a_stall_of_the_node_is_not_undone_at_the_sync(rig):
 @pytest.mark.parametrize('other', [0.3, 0.6])
 def test_a_second_sync_producer_does_not_move_the_schedule_every_cycle(other):
     period = 0.004
-    producer = SyncProducer(_Supervisor(), _Network(), period)
-    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
-    origin = producer.next_point(0.0)
+    producer, origin = producing(period)
     delays = [0.0002, 0.0001, 0.0003, 0.0002]
     placed = []
     for cycle in range(40):
@@ -680,9 +679,7 @@ def test_a_bus_outage_is_no_sync_period_error_in_diagnostics():
     # the SYNC: /diagnostics showed it as the largest period error, and a measured period
     # far above the one produced, for the next 200 SYNCs.
     period = 0.004
-    producer = SyncProducer(_Supervisor(), _Network(), period)
-    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
-    origin = producer.next_point(0.0)
+    producer, origin = producing(period)
     for cycle in range(10):
         producer._on_sync_heard(0x80, bytearray(), origin + cycle * period + 0.0002)
     producer._on_bus_change(BusStatus(False, 'the adapter was unplugged', 0, 0, 0, 0))
