@@ -33,12 +33,17 @@ from typing import Callable, List, Optional
 
 import can
 
+from .send_timeout import kernel_send_timeout
+
 LOGGER = logging.getLogger(__name__)
 
 FIRST_RETRY = 0.1
 MAX_RETRY = 5.0
 RECEIVE_POLL = 0.1  # how soon the receive thread notices a fault reported by a sender
-SEND_TIMEOUT = 0.2  # a transmit queue that does not drain is a fault, not a hang
+# A transmit queue that does not drain is a fault, not a hang. On udp_multicast the kernel
+# holds this bound, not python-can (send_timeout.py: its per-call timeout costs a poll() before
+# every send and every receive on the socket).
+SEND_TIMEOUT = 0.2
 # Frames taken from the driver but not yet handed to canopen, at the most: more than a
 # second of a saturated 1 Mbit/s bus. Beyond it frames are dropped and counted, as a
 # driver's full receive buffer drops them, rather than held in memory without bound.
@@ -129,6 +134,7 @@ class BusSupervisor:
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._bus: Optional[can.BusABC] = None
+        self._send_timeout: Optional[float] = SEND_TIMEOUT  # what the open bus's send() gets
         self._up = False
         self._reason = 'not opened yet'
         self._opened_before = False
@@ -217,8 +223,9 @@ class BusSupervisor:
             bus = self._bus
             if bus is None or not self._up:
                 raise BusDown(f'the CAN bus is down: {self._reason}')
+            timeout = self._send_timeout
         try:
-            bus.send(message, timeout=SEND_TIMEOUT)
+            bus.send(message, timeout=timeout)
         except Exception as error:  # noqa: BLE001 - any driver failure is a bus fault
             reason = f'sending failed: {error}'
             self._report_fault(bus, reason)
@@ -270,8 +277,9 @@ class BusSupervisor:
                 retry = min(retry * 2, MAX_RETRY)
                 continue
             opened = time.monotonic()
+            send_timeout = kernel_send_timeout(bus, SEND_TIMEOUT)
             self._note_sends(bus)
-            self._coming_up(bus)
+            self._coming_up(bus, send_timeout)
             reason = self._receive(bus)
             if reason is None:
                 self._close(bus)
@@ -381,7 +389,7 @@ class BusSupervisor:
             self._listener_errors.add(kind)
             LOGGER.exception('%s failed (%s); the bus goes on', what, kind[1])
 
-    def _coming_up(self, bus: can.BusABC) -> None:
+    def _coming_up(self, bus: can.BusABC, send_timeout: Optional[float]) -> None:
         with self._lock:
             reopened = self._opened_before
             if reopened:
@@ -389,6 +397,7 @@ class BusSupervisor:
             self._opened_before = True
             self._down_logged = False
             self._bus = bus
+            self._send_timeout = send_timeout
             self._up = True
             self._told_up = True
             self._fault = None
