@@ -111,13 +111,12 @@ class _SupervisedBus:
 
     def __init__(self, supervisor: 'BusSupervisor'):
         self._supervisor = supervisor
+        # canopen calls send(message) for every frame it sends: the supervisor's, directly.
+        self.send: Callable[[can.Message], None] = supervisor.send
 
     @property
     def channel_info(self) -> str:
         return self._supervisor.description
-
-    def send(self, message: can.Message, timeout: Optional[float] = None) -> None:
-        self._supervisor.send(message)
 
 
 class BusSupervisor:
@@ -217,6 +216,8 @@ class BusSupervisor:
 
         A failed send is a fault of the bus: it is reported down and reopened.
         """
+        # One locked section per frame (this runs for every segment of a program image): the
+        # frame is counted as it is handed over, and taken back if the driver refuses it.
         with self._lock:
             if self._send_gate is not None and not self._send_gate(message):
                 raise BusDown(self._gate_reason)
@@ -224,14 +225,15 @@ class BusSupervisor:
             if bus is None or not self._up:
                 raise BusDown(f'the CAN bus is down: {self._reason}')
             timeout = self._send_timeout
+            self._sent += 1
         try:
             bus.send(message, timeout=timeout)
         except Exception as error:  # noqa: BLE001 - any driver failure is a bus fault
+            with self._lock:
+                self._sent -= 1
             reason = f'sending failed: {error}'
             self._report_fault(bus, reason)
             raise BusDown(f'the CAN bus is down: {reason}') from error
-        with self._lock:
-            self._sent += 1
 
     def send_periodic(self, messages: List[can.Message], period: float):
         """Start python-can's periodic sending of ``messages`` (in turn) on the bus open now.
