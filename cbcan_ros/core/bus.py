@@ -15,12 +15,13 @@ clock as it takes it. An adapter's own timestamp is never used: adapters' clocks
 from the host's (by seconds on some) and drift. A frame whose handlers are all marked
 :func:`prompt` (they return at once: SDO answers, heartbeats, PDOs, LSS answers) is handed
 to canopen by the receive thread itself when nothing is waiting for dispatch, which spares
-the frame a wake-up of another thread. Every other frame, and every frame behind it, goes
-to the dispatch thread in the order taken. So a frame handler that takes its time (or a
-burst of frames) holds up only the dispatch: frames are still taken and stamped as they
-come, a frame that was on the bus before a request was sent is stamped before it (and the
-SDO client can tell it is not the request's answer), and handlers see the frames in the
-order they were received, one at a time.
+the frame a wake-up of another thread; a frame nobody subscribed to (on udp_multicast every
+frame the gateway sends comes back) then goes no further. Every other frame, and every
+frame behind it, goes to the dispatch thread in the order taken. So a frame handler that
+takes its time (or a burst of frames) holds up only the dispatch: frames are still taken
+and stamped as they come, a frame that was on the bus before a request was sent is stamped
+before it (and the SDO client can tell it is not the request's answer), and handlers see
+the frames in the order they were received, one at a time.
 """
 
 import contextlib
@@ -33,12 +34,17 @@ from typing import Callable, List, Optional
 
 import can
 
+from .send_timeout import kernel_send_timeout
+
 LOGGER = logging.getLogger(__name__)
 
 FIRST_RETRY = 0.1
 MAX_RETRY = 5.0
 RECEIVE_POLL = 0.1  # how soon the receive thread notices a fault reported by a sender
-SEND_TIMEOUT = 0.2  # a transmit queue that does not drain is a fault, not a hang
+# A transmit queue that does not drain is a fault, not a hang. On udp_multicast the kernel
+# holds this bound, not python-can (send_timeout.py: its per-call timeout costs a poll() before
+# every send and every receive on the socket).
+SEND_TIMEOUT = 0.2
 # Frames taken from the driver but not yet handed to canopen, at the most: more than a
 # second of a saturated 1 Mbit/s bus. Beyond it frames are dropped and counted, as a
 # driver's full receive buffer drops them, rather than held in memory without bound.
@@ -106,13 +112,12 @@ class _SupervisedBus:
 
     def __init__(self, supervisor: 'BusSupervisor'):
         self._supervisor = supervisor
+        # canopen calls send(message) for every frame it sends: the supervisor's, directly.
+        self.send: Callable[[can.Message], None] = supervisor.send
 
     @property
     def channel_info(self) -> str:
         return self._supervisor.description
-
-    def send(self, message: can.Message, timeout: Optional[float] = None) -> None:
-        self._supervisor.send(message)
 
 
 class BusSupervisor:
@@ -129,6 +134,7 @@ class BusSupervisor:
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._bus: Optional[can.BusABC] = None
+        self._send_timeout: Optional[float] = SEND_TIMEOUT  # what the open bus's send() gets
         self._up = False
         self._reason = 'not opened yet'
         self._opened_before = False
@@ -211,20 +217,24 @@ class BusSupervisor:
 
         A failed send is a fault of the bus: it is reported down and reopened.
         """
+        # One locked section per frame (this runs for every segment of a program image): the
+        # frame is counted as it is handed over, and taken back if the driver refuses it.
         with self._lock:
             if self._send_gate is not None and not self._send_gate(message):
                 raise BusDown(self._gate_reason)
             bus = self._bus
             if bus is None or not self._up:
                 raise BusDown(f'the CAN bus is down: {self._reason}')
+            timeout = self._send_timeout
+            self._sent += 1
         try:
-            bus.send(message, timeout=SEND_TIMEOUT)
+            bus.send(message, timeout=timeout)
         except Exception as error:  # noqa: BLE001 - any driver failure is a bus fault
+            with self._lock:
+                self._sent -= 1
             reason = f'sending failed: {error}'
             self._report_fault(bus, reason)
             raise BusDown(f'the CAN bus is down: {reason}') from error
-        with self._lock:
-            self._sent += 1
 
     def send_periodic(self, messages: List[can.Message], period: float):
         """Start python-can's periodic sending of ``messages`` (in turn) on the bus open now.
@@ -270,8 +280,9 @@ class BusSupervisor:
                 retry = min(retry * 2, MAX_RETRY)
                 continue
             opened = time.monotonic()
+            send_timeout = kernel_send_timeout(bus, SEND_TIMEOUT)
             self._note_sends(bus)
-            self._coming_up(bus)
+            self._coming_up(bus, send_timeout)
             reason = self._receive(bus)
             if reason is None:
                 self._close(bus)
@@ -333,7 +344,13 @@ class BusSupervisor:
             self._received += 1
             frame_id = message.arbitration_id
             if not waiting:  # (a loop, not all(): this runs for every frame)
-                for handler in subscribers.get(frame_id, ()):
+                handlers = subscribers.get(frame_id)
+                if not handlers:
+                    # Nobody takes it (on udp_multicast, every frame sent comes back): canopen's
+                    # notify would only hand it to its node scanner, which the gateway never
+                    # reads. Spared, the frame holds the interpreter lock a little less.
+                    continue
+                for handler in handlers:
                     if not getattr(handler, 'prompt_handler', False):
                         waiting = True
                         break
@@ -381,7 +398,7 @@ class BusSupervisor:
             self._listener_errors.add(kind)
             LOGGER.exception('%s failed (%s); the bus goes on', what, kind[1])
 
-    def _coming_up(self, bus: can.BusABC) -> None:
+    def _coming_up(self, bus: can.BusABC, send_timeout: Optional[float]) -> None:
         with self._lock:
             reopened = self._opened_before
             if reopened:
@@ -389,6 +406,7 @@ class BusSupervisor:
             self._opened_before = True
             self._down_logged = False
             self._bus = bus
+            self._send_timeout = send_timeout
             self._up = True
             self._told_up = True
             self._fault = None

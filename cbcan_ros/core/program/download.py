@@ -278,12 +278,11 @@ class ProgramDownload:
         total = len(self._image)
         began = time.monotonic()
         told = [began]
-        kind = ['']
+        by_block = [False]
 
-        def written(position: int, block: bool) -> Optional[str]:
+        def written(position: int, block: bool) -> Optional[str]:  # after every segment
             self._sent = position
-            kind[0] = ('block transfer' if block else 'expedited transfer' if total <= 4
-                       else 'segmented transfer')
+            by_block[0] = block
             now = time.monotonic()
             if now - told[0] >= FEEDBACK_PERIOD or position == total:
                 told[0] = now
@@ -307,7 +306,9 @@ class ProgramDownload:
                           result.abort_code)
         self._sent = total
         elapsed = max(time.monotonic() - began, 1e-6)
-        self._transfer = (f'{kind[0]}, {total} bytes in {elapsed:.2f} s, '
+        kind = ('block transfer' if by_block[0] else 'expedited transfer' if total <= 4
+                else 'segmented transfer')
+        self._transfer = (f'{kind}, {total} bytes in {elapsed:.2f} s, '
                           f'{total / elapsed / 1024:.1f} KiB/s')
 
     def _start_program(self) -> None:

@@ -129,17 +129,16 @@ class SdoChannel:
         """
         index, subindex = access.index, access.subindex
 
-        def each_segment(position: int, block: bool) -> None:
-            reason = written(position, block)
-            if reason:
-                raise self._client.fail(abort_codes.LOCAL_CONTROL, reason)
+        def attempt(block: bool) -> None:
+            def each_segment(position: int) -> None:  # one call per segment, no more
+                reason = written(position, block)
+                if reason:
+                    raise self._client.fail(abort_codes.LOCAL_CONTROL, reason)
+            download(self._client, index, subindex, access.data, block, each_segment)
 
         def run(deadline: float) -> SdoResult:
-            return self._transfer(
-                index, subindex, deadline,
-                lambda block: download(self._client, index, subindex, access.data, block,
-                                       lambda position: each_segment(position, block)),
-                block_first=True, answer_within=answer_within)
+            return self._transfer(index, subindex, deadline, attempt, block_first=True,
+                                  answer_within=answer_within)
         return self._submit(run, answer_within, None)
 
     def fail_all(self, reason: str, abort_code: Optional[int] = None) -> None:
