@@ -236,6 +236,18 @@ class BusSupervisor:
             self._report_fault(bus, reason)
             raise BusDown(f'the CAN bus is down: {reason}') from error
 
+    def times_periodic_sends(self) -> bool:
+        """Return whether the bus open now times periodic sends itself, without a thread.
+
+        SocketCAN's bus hands them to the kernel's broadcast manager, IXXAT's to the adapter;
+        on every other python-can bus ``send_periodic`` starts a Python thread, which needs
+        the interpreter lock at every send like any thread of this process.
+        """
+        with self._lock:
+            bus = self._bus
+        return bus is not None and (type(bus)._send_periodic_internal
+                                    is not can.BusABC._send_periodic_internal)
+
     def send_periodic(self, messages: List[can.Message], period: float):
         """Start python-can's periodic sending of ``messages`` (in turn) on the bus open now.
 

@@ -1,20 +1,24 @@
 """SYNC production (CiA 301, COB-ID 0x80): the gateway's clock for synchronous PDOs.
 
-SYNC goes out with python-can's periodic sending (the kernel's broadcast manager on
-SocketCAN, a sending thread elsewhere), so its period does not depend on this process being
-scheduled. With a counter, the task cycles through the frames 1..overflow, which python-can
-sends in turn: the counter needs no code of ours between two SYNCs either.
+Where the bus times periodic sends itself (the kernel's broadcast manager on SocketCAN, the
+adapter on IXXAT), SYNC goes out with python-can's periodic sending, so its period does not
+depend on this process being scheduled; with a counter, the task cycles through the frames
+1..overflow. On every other bus python-can would send it from a thread of its own, no better
+timed than one of ours, and racing the RPDOs: this module's SYNC thread sends it instead,
+with the frames that must go before or after it, so each frame's place relative to the SYNC
+is known, not guessed from a time grid (a SYNC late by a busy machine no longer lets a frame
+meant for the next cycle in ahead of it).
 
 The task is bound to one opened bus: it is stopped when the bus goes down and started again
 on the new bus when it comes back (the counter starts again at 1, as after a device's reset).
 
-Synchronous RPDOs must reach a device after a SYNC to be applied at the following one; a
-thread of ours sends them a quarter period after the SYNC, on the same monotonic time grid as
-the periodic task (python-can's thread and the kernel's timer both keep a fixed grid from
-their start, without drift). The same grid tells a stream of targets whether a frame sent now
-is in before the next SYNC (``open_for_rpdos``), and calls back a quarter period before that
-SYNC (``before_next_sync``), the last moment a frame is surely in, to repeat a stream's frame
-in a cycle its caller left without one.
+Synchronous RPDOs must reach a device after a SYNC to be applied at the following one; the
+SYNC thread sends them right after the SYNC it sent, or, when the bus times SYNC itself, a
+quarter period after it, on the same monotonic time grid as the periodic task (the kernel's
+timer keeps a fixed grid from its start, without drift). The same grid tells a stream of
+targets whether a frame sent now is in before the next SYNC (``open_for_rpdos``), and calls
+back a quarter period before that SYNC (``before_next_sync``), the last moment a frame is
+surely in, to repeat a stream's frame in a cycle its caller left without one.
 """
 
 from collections import deque
@@ -52,6 +56,22 @@ def sync_frames(counter_overflow: int) -> List[can.Message]:
             for count in range(1, counter_overflow + 1)]
 
 
+class _ThreadTask:
+    """SYNC sent by the producer's thread on the grid from the task's start (see the module).
+
+    ``sent``: the grid cycle of the last SYNC sent (-1: none yet); ``count``: SYNCs sent, which
+    picks the counter's frame.
+    """
+
+    def __init__(self, frames: List[can.Message]):
+        self.frames = frames
+        self.sent = -1
+        self.count = 0
+
+    def stop(self) -> None:
+        """Nothing to stop: the thread sends only while this is the producer's task."""
+
+
 @dataclass(frozen=True)
 class SyncStatus:
     """What diagnostics show of SYNC."""
@@ -75,6 +95,8 @@ class SyncProducer:
         self._supervisor = supervisor
         self._network = network
         self._lock = threading.Condition()
+        # Held while the thread sends a SYNC: a task that ends waits for it, so none follows.
+        self._sending = threading.Lock()
         self._task = None
         self._task_start = 0.0
         self._grid_start = 0.0
@@ -87,8 +109,7 @@ class SyncProducer:
         self._heard = 0
         self._last_heard: Optional[float] = None
         self._intervals: deque = deque(maxlen=PERIOD_SAMPLES)
-        self._thread = threading.Thread(target=self._run_after_sync, name='sync-rpdos',
-                                        daemon=True)
+        self._thread = threading.Thread(target=self._run, name='sync', daemon=True)
 
     @property
     def producing(self) -> bool:
@@ -136,12 +157,18 @@ class SyncProducer:
         """Return whether a synchronous RPDO sent now is applied at the next SYNC.
 
         True from a SYNC until a quarter period before the next one, while SYNC is produced.
+        When this thread sends SYNC, from the moment the cycle's SYNC went out, however late:
+        a frame sent before it would be applied by it, a cycle early, and leave the cycle
+        after it without a frame.
         """
         with self._lock:
-            if self._task is None:
+            task = self._task
+            if task is None:
                 return False
-            phase = ((time.monotonic() - self._grid_start) / self.period) % 1
-        return phase < 1 - RPDO_OFFSET
+            cycles = (time.monotonic() - self._grid_start) / self.period
+            if isinstance(task, _ThreadTask) and task.sent < math.floor(cycles):
+                return False
+        return cycles % 1 < 1 - RPDO_OFFSET
 
     def next_point(self, fraction: float) -> Optional[float]:
         """Return the next monotonic time ``fraction`` of a period after a SYNC, or None.
@@ -184,12 +211,14 @@ class SyncProducer:
         # Taken before: python-can's thread and the kernel's broadcast manager send the first
         # SYNC as they start, so each SYNC goes out just after its grid point, never before.
         grid_start = time.monotonic()
+        frames = sync_frames(self.counter_overflow)
         try:
-            self._task = self._supervisor.send_periodic(sync_frames(self.counter_overflow),
-                                                        self.period)
+            self._task = (self._supervisor.send_periodic(frames, self.period)
+                          if self._supervisor.times_periodic_sends() else _ThreadTask(frames))
         except BusDown as error:
             LOGGER.warning('SYNC could not be started: %s', error)
             return False
+        self._lock.notify_all()  # the thread's SYNC is due at once
         self._task_start = self._grid_start = grid_start
         self._phases.clear()
         # The gap since a SYNC heard before (a bus down meanwhile) is no period of SYNC.
@@ -200,7 +229,10 @@ class SyncProducer:
     def _stop_task(self) -> List[Callable[[], None]]:
         """Stop the task; return the callbacks that waited for its SYNC (run them unlocked)."""
         task, self._task = self._task, None
-        if task is not None:
+        if isinstance(task, _ThreadTask):
+            with self._sending:
+                pass  # a SYNC on its way out is out before the task ends
+        elif task is not None:
             try:
                 task.stop()
             except Exception as error:  # noqa: BLE001 - a dead adapter may fail to stop it
@@ -210,29 +242,61 @@ class SyncProducer:
         waiting, self._before_sync = waiting + self._before_sync, []
         return waiting
 
-    def _run_after_sync(self) -> None:
+    def _run(self) -> None:
+        """Send SYNC (a ``_ThreadTask``) and run the callbacks before and after it, on time."""
         never = math.inf
         while True:
             with self._lock:
-                while not self._closing and not ((self._after_sync or self._before_sync)
-                                                 and self._task is not None):
+                while not self._closing and not (self._task is not None and (
+                        isinstance(self._task, _ThreadTask) or self._after_sync
+                        or self._before_sync)):
                     self._lock.wait()
                 if self._closing:
                     return
-                now = time.monotonic()
-                after = self._next_point(RPDO_OFFSET, now) if self._after_sync else never
+                task, now = self._task, time.monotonic()
+                if isinstance(task, _ThreadTask):
+                    sync = self._grid_start + (task.sent + 1) * self.period
+                    after = never  # run right after the SYNC sent
+                else:
+                    sync = never
+                    after = self._next_point(RPDO_OFFSET, now) if self._after_sync else never
                 before = (self._next_point(1 - RPDO_OFFSET, now) if self._before_sync
                           else never)
-                due = min(after, before)
+                due = min(sync, after, before)
                 self._lock.wait(max(due - now, 0.0))
-                if time.monotonic() < due or self._task is None:
+                if time.monotonic() < due or self._task is not task:
                     continue
                 callbacks = []
                 if after == due:
                     callbacks, self._after_sync = self._after_sync, []
                 if before == due:
                     callbacks, self._before_sync = callbacks + self._before_sync, []
+            if sync == due:
+                cycle = self._send_sync(task)
+                with self._lock:  # a frame held back until now goes out right after it
+                    if self._task is task:
+                        task.sent = cycle
+                        callbacks, self._after_sync = callbacks + self._after_sync, []
             _run_all(callbacks)
+
+    def _send_sync(self, task: _ThreadTask) -> int:
+        """Send the SYNC of the grid cycle due now and return the cycle.
+
+        One later than half a period is skipped rather than sent late: after a stall, SYNCs
+        sent back to back would give the devices cycles of no length, and the next one on
+        the grid comes soon.
+        """
+        cycles = (time.monotonic() - self._grid_start) / self.period
+        cycle = math.floor(cycles)
+        send = cycles - cycle <= 0.5
+        with self._sending:
+            if send and self._task is task:  # not when the bus went down or shutdown began
+                try:
+                    self._supervisor.send(task.frames[task.count % len(task.frames)])
+                    task.count += 1
+                except BusDown:
+                    pass  # the bus thread reports it down; this task ends then
+        return cycle
 
     @prompt
     def _on_sync_heard(self, _can_id: int, _data: bytearray, timestamp: float) -> None:
@@ -241,7 +305,7 @@ class SyncProducer:
             previous, self._last_heard = self._last_heard, timestamp
             if previous is not None:
                 self._intervals.append(timestamp - previous)
-            if self._task is not None:
+            if self._task is not None and not isinstance(self._task, _ThreadTask):
                 self._follow_heard(timestamp, previous)
 
     def _follow_heard(self, stamp: float, previous: Optional[float]) -> None:
