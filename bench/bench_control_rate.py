@@ -89,10 +89,6 @@ class Controller:
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                          reliability=ReliabilityPolicy.RELIABLE)
         self._node = caller.node
-        self._publisher = caller.node.create_publisher(JointState, f'{gateway}/joint_commands',
-                                                       qos)
-        self._subscription = caller.node.create_subscription(
-            JointState, f'{gateway}/joint_states', self._on_states, qos)
         self._lock = threading.Lock()
         self.states = 0
         self.incomplete = 0
@@ -100,6 +96,11 @@ class Controller:
         self.base: Optional[Dict[str, float]] = None
         self.sent: Dict[int, float] = {}  # counter: time.time() of its publication
         self.running = False
+        self._publisher = caller.node.create_publisher(JointState, f'{gateway}/joint_commands',
+                                                       qos)
+        # Last: the caller's executor spins already, and the first message may come at once.
+        self._subscription = caller.node.create_subscription(
+            JointState, f'{gateway}/joint_states', self._on_states, qos)
 
     def _on_states(self, message) -> None:
         with self._lock:
