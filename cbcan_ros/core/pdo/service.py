@@ -139,14 +139,16 @@ class PdoService:
             self._thread.start()
 
     def stop(self) -> None:
-        """Answer every write still waiting for a SYNC; stop reading, receiving, sending."""
+        """Answer every write still waiting for a SYNC; stop reading mappings and sending.
+
+        TPDOs are still taken until :meth:`stop_receiving`: the statuswords that show the
+        drives' stops at shutdown, written after this.
+        """
         with self._lock:
             self._closing = True
             self._streams.clear()
             pending, self._pending_sync = self._pending_sync, {}
             self._lock.notify_all()
-            self._by_cob.clear()
-            self._follow_cob_ids()
         for futures in pending.values():
             for future, *_ in futures:
                 answer(future, SdoResult.failed(f'{SHUTTING_DOWN}; it was not sent'))
@@ -156,6 +158,12 @@ class PdoService:
             self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
         # The mapping reader is not waited for: it may wait for an SDO answer, which the
         # gateway gives ("shutting down") right after this; it then installs nothing.
+
+    def stop_receiving(self) -> None:
+        """Take no more TPDOs (after :meth:`stop`)."""
+        with self._lock:
+            self._by_cob.clear()
+            self._follow_cob_ids()
 
     def _follow_cob_ids(self) -> None:
         """Subscribe to exactly the COB-IDs of ``_by_cob`` (called with the lock held).
