@@ -29,6 +29,7 @@ from std_msgs.msg import Float64
 import test_drive_safety
 from test_drive_safety import (
     ANSWER,
+    CONTROLWORD,
     CSV,
     DriveRig,
     HALT,
@@ -692,3 +693,29 @@ def test_a_bus_outage_is_no_sync_period_error_in_diagnostics():
     assert status.measured_period == pytest.approx(period, abs=1e-6)
     assert status.measured_jitter == pytest.approx(0.0, abs=1e-6)
     producer.stop()
+
+
+# 7. A halt released.
+
+# Once a defect: resume, and enable of a halted drive, answered with the first statusword
+# after the release's frame went out. A synchronous RPDO is applied only at the SYNC after
+# it, so the answer came a SYNC before the drive took the release: "resumed" (or "enabled"),
+# with a statusword that showed the drive halted, and the drive holding the halt bit still.
+@pytest.mark.parametrize('command', ['resume', 'enable'])
+def test_a_halt_released_in_a_synchronous_rpdo_is_answered_once_the_drive_took_it(rig,
+                                                                                   command):
+    # A slow SYNC (200 ms): the release's frame waits most of a cycle for the SYNC that
+    # applies it, while the drive's statusword TPDO comes every 20 ms.
+    axis = rig(COMBINED, '-p', 'drives.command_timeout:=0.0', period=0.2)
+    streaming(axis, COMBINED)
+    axis.stop_streams()
+    halted = axis.command('halt')
+    assert halted.success, halted.message
+    assert struct.unpack('<H', axis.drive.value(CONTROLWORD))[0] & HALT
+    answer = axis.command(command, CSV if command == 'enable' else 0)
+    held = struct.unpack('<H', axis.drive.value(CONTROLWORD))[0]
+    assert answer.success, answer.message
+    # The simulated drive shows its halt in statusword bit 8 (a vendor bit of CiA 402).
+    assert not answer.statusword & HALT and not held & HALT, (
+        f'{command} answered {answer.message!r} with statusword 0x{answer.statusword:04X}; '
+        f'the drive held controlword 0x{held:04X} as the answer came')
