@@ -396,6 +396,33 @@ def test_a_signal_quick_stops_an_enabled_drive_before_the_node_exits(rig, signum
     nothing_to_the_drive_after(axis, request, 'the quick stop')
 
 
+# Once a defect: the quick stop went out after the PDO service had stopped taking TPDOs, so
+# the statusword that showed it was never taken, and the last drive_state a robot program
+# got from the node that had gone said OPERATION_ENABLED. With synchronous TPDOs the
+# statusword comes at a SYNC after the stop; without TPDOs (sdo_only, or synchronous ones
+# while the gateway produces no SYNC) only a read brings it, and the feedback cycle's polls
+# have ended.
+@pytest.mark.parametrize('layout, sync', [
+    ('combined', ()), ('ros2_canopen', ('-p', 'sync.period:=0.01')), ('sdo_only', ())],
+    ids=['combined', 'ros2_canopen-sync', 'sdo_only'])
+def test_after_a_signal_the_last_drive_state_shows_the_stop(rig, layout, sync):
+    axis = rig('-p', 'drives.command_timeout:=0.0', *sync, pdos=layout_pdos(layout))
+    axis.enable_moving()
+    axis.wait_state('OPERATION_ENABLED')
+    stop_with(axis, signal.SIGINT)
+    axis.stop_streams()
+    axis.drive_reaches(standing_still, 'the drive stopped')
+    try:
+        wait_until(lambda: axis.latest().state in STOPPED, ANSWER,
+                   'the last drive_state showing the stop')
+    except AssertionError:
+        with axis._lock:
+            seen = [message.state for message in axis.states[-5:]]
+        raise AssertionError(f'the node exited; the drive is {axis.drive.drive_state}, its '
+                             f'last drive_state messages said {seen}:\n'
+                             f'{axis.node.output()[-3000:]}') from None
+
+
 def test_on_shutdown_disable_switches_the_power_stage_off(rig):
     axis = rig('-p', 'drives.command_timeout:=0.0', '-p', 'drives.on_shutdown:=disable')
     axis.enable_moving()

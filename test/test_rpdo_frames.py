@@ -38,6 +38,9 @@ class _Sync:
         self._callbacks.append(callback)
         return True
 
+    def next_point(self, _fraction: float) -> None:
+        return None  # no time grid: no frame counts as held for the next SYNC
+
     def sync(self) -> None:
         callbacks, self._callbacks = self._callbacks, []
         for callback in callbacks:

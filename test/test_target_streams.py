@@ -29,6 +29,7 @@ from std_msgs.msg import Float64
 import test_drive_safety
 from test_drive_safety import (
     ANSWER,
+    CONTROLWORD,
     CSV,
     DriveRig,
     HALT,
@@ -53,6 +54,7 @@ from conftest import wait_for_future, wait_until
 from node_process import call
 
 SYNC = 0x080
+PV = 3
 BOOT_UP = 0x700 + NODE
 RPDO1, RPDO2, RPDO4 = 0x200 + NODE, 0x300 + NODE, 0x500 + NODE
 RPDOS = test_drive_safety.RPDOS
@@ -186,6 +188,89 @@ def test_a_stop_in_the_cycle_of_a_streamed_target_is_not_undone_at_the_sync(rig,
                     f'{command} answered {answer.success} ({answer.message!r}); the drive is '
                     f'{axis.drive.drive_state} at velocity {axis.drive.velocity}; its SYNC '
                     f'window held {shown(commanding(frames[before + 1:after]))}')
+                return
+        axis.node.stop()
+    pytest.skip('the stop never came in the SYNC cycle of a target (machine too slow)')
+
+
+def controlwords_taken(drive) -> list:
+    """Record every controlword the drive acts on from an RPDO, in order."""
+    taken = []
+    act = drive._act_on_controlword
+
+    def acting(word: int) -> None:
+        taken.append(word)
+        act(word)
+    drive._act_on_controlword = acting
+    return taken
+
+
+def sync_after_first(drive, layout: Layout, carries) -> None:
+    """Have another master's SYNC reach ``drive`` right after the first RPDO that ``carries``.
+
+    ``carries(controlword)``; the SYNC is delivered to the drive as it takes that frame,
+    before any frame after it: on the bus such a SYNC can come between any two frames, and
+    this one comes where it does harm.
+    """
+    network = drive._network
+
+    def hook(callback, cob_id: int, data: bytes) -> None:
+        callback(cob_id, data)
+        if len(data) >= 2 and carries(struct.unpack_from('<H', data)[0]):
+            for number in layout.controlword_ids:
+                del network.hooks[number]
+            network._subscriptions[SYNC](SYNC, b'')
+    for number in layout.controlword_ids:
+        network.hooks[number] = hook
+
+
+# Once a defect: a stop decided in the SYNC cycle of a streamed target went out in RPDO 1
+# right after the SYNC, and the frame the drive held since that target in RPDO 4 (with the
+# running controlword) was sent again carrying the stop only after it. Another master's SYNC
+# between the two had the drive apply the stop, then RPDO 4's older controlword: running
+# again until the next SYNC (halted and released, or quick-stopped and enabled again by
+# transition 16). The SYNC comes after the first frame carrying the stop, whichever RPDO.
+@pytest.mark.parametrize('command', ['halt', 'quick_stop'])
+def test_another_masters_sync_right_after_a_stops_frame_does_not_undo_it(rig, command):
+    # As the test above: a slow SYNC, the target and the stop in the first quarter of one
+    # cycle; a gateway whose stop did not come in that cycle is replaced, up to a few times.
+    stopped = STOPS[command]
+    for _attempt in range(4):
+        axis = rig(VENDOR, '-p', 'drives.command_timeout:=0.0', period=0.2)
+        axis.drive.set_value(0x605A, 0, STAYS_IN_QUICK_STOP)
+        # In PV, and heard OPERATIONAL before the enable: enable changes the mode in RPDO 2,
+        # whose frame the stop goes into too; RPDO 4 holds the target.
+        axis.drive.set_value(0x6060, 0, PV)
+        axis.wait_state('SWITCH_ON_DISABLED')
+        started = len(axis.recorder.frames)
+        axis.nmt_start()
+        axis.recorder.first(lambda m: m.arbitration_id == BOOT_UP and bytes(m.data) == b'\x05',
+                            'a heartbeat of the drive saying OPERATIONAL', started)
+        streaming(axis, VENDOR)
+        axis.stop_streams()
+        taken = controlwords_taken(axis.drive)
+        sync_after_first(axis.drive, VENDOR, stopped)
+        client = axis.client(DriveCommand, 'drive_command')
+        since = len(axis.recorder.frames)
+        axis.recorder.first(lambda m: m.arbitration_id == SYNC, 'a SYNC', since)
+        axis.publisher.publish(Float64(data=float(VELOCITY)))
+        answer = wait_for_future(client.call_async(DriveCommand.Request(
+            node_id=NODE, command=command, timeout=2.0)), ANSWER + 2.0)
+        axis.recorder.mark()
+        frames = axis.recorder.messages()
+        stop = next((number for number in range(since, len(frames))
+                     if stopped(VENDOR.controlword(frames[number]))), None)
+        if stop is not None:
+            before, _ = window_of(frames, stop)
+            older = [m for m in frames[before + 1:stop] if VENDOR.controlword(m) is not None
+                     and not stopped(VENDOR.controlword(m))]
+            if older:  # the case under test: the drive holds a running frame as it comes
+                first = next(number for number, word in enumerate(taken) if stopped(word))
+                undone = [f'0x{word:04X}' for word in taken[first:] if not stopped(word)]
+                assert not undone and answer.success, (
+                    f'{command} answered {answer.success} ({answer.message!r}); after the '
+                    f'stop the drive took {undone}; frames from the SYNC before the stop: '
+                    f'{shown(commanding(frames[before + 1:stop + 1]))}')
                 return
         axis.node.stop()
     pytest.skip('the stop never came in the SYNC cycle of a target (machine too slow)')
@@ -738,3 +823,29 @@ def test_a_frame_due_after_a_late_sync_waits_for_it_and_follows_it():
         assert producer.open_for_rpdos(), 'not open for RPDOs right after the SYNC went out'
     finally:
         producer.stop()
+
+
+# 7. A halt released.
+
+# Once a defect: resume, and enable of a halted drive, answered with the first statusword
+# after the release's frame went out. A synchronous RPDO is applied only at the SYNC after
+# it, so the answer came a SYNC before the drive took the release: "resumed" (or "enabled"),
+# with a statusword that showed the drive halted, and the drive holding the halt bit still.
+@pytest.mark.parametrize('command', ['resume', 'enable'])
+def test_a_halt_released_in_a_synchronous_rpdo_is_answered_once_the_drive_took_it(rig,
+                                                                                   command):
+    # A slow SYNC (200 ms): the release's frame waits most of a cycle for the SYNC that
+    # applies it, while the drive's statusword TPDO comes every 20 ms.
+    axis = rig(COMBINED, '-p', 'drives.command_timeout:=0.0', period=0.2)
+    streaming(axis, COMBINED)
+    axis.stop_streams()
+    halted = axis.command('halt')
+    assert halted.success, halted.message
+    assert struct.unpack('<H', axis.drive.value(CONTROLWORD))[0] & HALT
+    answer = axis.command(command, CSV if command == 'enable' else 0)
+    held = struct.unpack('<H', axis.drive.value(CONTROLWORD))[0]
+    assert answer.success, answer.message
+    # The simulated drive shows its halt in statusword bit 8 (a vendor bit of CiA 402).
+    assert not answer.statusword & HALT and not held & HALT, (
+        f'{command} answered {answer.message!r} with statusword 0x{answer.statusword:04X}; '
+        f'the drive held controlword 0x{held:04X} as the answer came')

@@ -275,8 +275,10 @@ class Gateway:
         self.boot.stop()
         self.pdo.stop()
         # The drives' stop commands go next, while the bus is open; callers' requests are
-        # refused from here on, the drive service's are taken until its stops are sent.
+        # refused from here on, the drive service's are taken until its stops are sent, and
+        # TPDOs until the drives' statuswords show them.
         self.drives.stop()
+        self.pdo.stop_receiving()
         with self._lock:
             self._stopping_drives = False
             channels = list(self._channels.values())

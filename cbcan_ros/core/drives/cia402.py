@@ -166,6 +166,14 @@ def state_of(statusword: int) -> str:
     return UNKNOWN  # 0x0F without bit 3 and the like: no state of the profile
 
 
+def stops(controlword: int) -> bool:
+    """Return whether ``controlword`` stops the axis: the halt bit, quick stop or disable voltage.
+
+    Quick stop and disable voltage are the commands with bit 1 or bit 2 clear (CiA 402).
+    """
+    return bool(controlword & HALT) or controlword & 0x06 != 0x06
+
+
 def error_meaning(code: int) -> str:
     """Return what an error code of 0x603F or an EMCY means, e.g. 'DC link over-voltage'."""
     if code in ERROR_MEANINGS:

@@ -23,7 +23,7 @@ from .arrival import (
     software_limits,
 )
 from .checks import ENABLED_COMMANDS, lost_problem, SHUTTING_DOWN, state_problem
-from .standstill import wait_for_standstill
+from .standstill import until_applied_at_sync, wait_for_standstill
 from .status import DriveResult
 
 # The timeout of each SDO a sequence sends (a PDO goes out without an answer).
@@ -343,9 +343,8 @@ class DriveCommands:
                 # Released alone, it would go on to the set-point it was halted on its way to.
                 await self._new_set_point(drive, held)
             else:  # bit 4 down too: a halted homing does not start again
-                mark = await self._send(drive, {cia402.CONTROLWORD: drive.controlword & ~(
+                await self._release(drive, {cia402.CONTROLWORD: drive.controlword & ~(
                     cia402.HALT | cia402.MODE_BITS)})
-                await self._after(drive, mark, lambda s: True)
             status = self._service.status(drive.node_id)
         self._service.set_enabled(drive, True)
         return f'node {drive.node_id} is OPERATION_ENABLED in {cia402.mode_name(status.mode)}'
@@ -399,9 +398,24 @@ class DriveCommands:
         return f'node {drive.node_id} halted at position {position} (drive units)'
 
     async def _resume(self, drive, _mode: int) -> str:
-        mark = await self._send(drive, {}, halt='')
-        await self._after(drive, mark, lambda status: True)
+        await self._release(drive, {}, halt='')
         return f'node {drive.node_id} resumed'
+
+    async def _release(self, drive, values: Dict[int, int], halt: Optional[str] = None) -> None:
+        """Send ``values`` releasing the halt (``halt`` as ``_send``); return once applied.
+
+        A drive applies a synchronous RPDO only at the SYNC after its frame: a statusword
+        before that shows it halted still, so the statusword is read after that SYNC, as a
+        halt's standstill is (``standstill.until_applied_at_sync``).
+        """
+        at_sync = drive.objects.applied_at_sync(cia402.CONTROLWORD)
+        mark = await self._send(drive, values, halt)
+        if at_sync:
+            await until_applied_at_sync(self._service.sync)
+            mark = drive.updates  # those taken meanwhile may be from before that SYNC
+            await asyncio.wrap_future(self._service.read_feedback(drive, [cia402.STATUSWORD],
+                                                                  SEND_TIMEOUT))
+        await self._after(drive, mark, lambda status: True)
 
     async def _fault_reset(self, drive, _mode: int) -> str:
         status = self._service.status(drive.node_id)

@@ -255,11 +255,16 @@ class DriveObjects:
             if carry_controlword and write == self._controlword_write:
                 # A synchronous controlword frame is applied a SYNC after the frames before
                 # it: the others are not sent again at once, or the controlword would come
-                # with them, early; waiting ones go out with it all the same.
-                word = encode(cia402.CONTROLWORD, commanded[cia402.CONTROLWORD])
-                self._pdo.carry(self.node_id, [EntryValue(cia402.CONTROLWORD, 0, data=word)],
+                # with them, early; waiting ones go out with it all the same. A stop is sent
+                # again at once all the same: early is what it wants, and a frame the drive
+                # holds with an older controlword, sent again only after the stop's, would be
+                # applied after it at a SYNC (another master's) that came between the two.
+                word = commanded[cia402.CONTROLWORD]
+                self._pdo.carry(self.node_id,
+                                [EntryValue(cia402.CONTROLWORD, 0,
+                                            data=encode(cia402.CONTROLWORD, word))],
                                 skip={frame.number for frame in frames},
-                                resend=not frames[-1].synchronous)
+                                resend=not frames[-1].synchronous or cia402.stops(word))
         return all_of(futures)
 
     def write_by_sdo(self, values: Dict[int, int], timeout: float) -> 'Future[SdoResult]':

@@ -17,7 +17,7 @@ from dataclasses import replace
 import logging
 import struct
 import time
-from typing import Callable, Iterable
+from typing import Callable, Iterable, List, Tuple
 
 from ..nmt import consumer_entry
 from ..sdo.requests import Access
@@ -52,12 +52,16 @@ def powered(drive: DriveRecord, unseen: bool = False) -> bool:
 
 
 def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
-                reason: str) -> None:
-    """Send ``on_shutdown`` by SDO to every powered drive; wait for them to take it."""
+                reason: str) -> List[Tuple[DriveRecord, int]]:
+    """Send ``on_shutdown`` by SDO to every powered drive; wait for them to take it.
+
+    Returns each drive sent it, with the statuswords it had taken before (``updates``): one
+    taken later may show the stop.
+    """
     word = ON_SHUTDOWN[settings.on_shutdown]
     if word is None:
-        return
-    sent = []
+        return []
+    sent, stopped = [], []
     for drive in records:
         with drive.sending:  # after a target or halt being sent, before any later one
             with lock:
@@ -65,6 +69,7 @@ def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
                     continue
                 drive.controlword = word
                 drive.status = replace(drive.status, needs_enable=True)
+                stopped.append((drive, drive.updates))
             sent.append((drive.node_id, drive.objects.write_by_sdo(
                 {cia402.CONTROLWORD: word}, SHUTDOWN_WAIT)))
     deadline = time.monotonic() + SHUTDOWN_WAIT
@@ -81,6 +86,7 @@ def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
         LOGGER.info('%s: %s sent to drives %s%s', reason, settings.on_shutdown,
                     ', '.join(str(node_id) for node_id, _ in sent),
                     f'; not taken by {", ".join(failed)}' if failed else '')
+    return stopped
 
 
 async def stop_unattended(drive: DriveRecord, lock, why: str) -> bool:

@@ -78,6 +78,8 @@ class DriveService:
         self._sdo_batch, self._beat_now = sdo_batch, beat_now
         self._bus_down = bus_down
         self._lock = threading.RLock()
+        # Notified at every statusword taken: shutdown waits there for those of its stops.
+        self._statuswords = threading.Condition(self._lock)
         self._drives = {
             node_id: DriveRecord(node_id, DriveObjects(
                 node_id, pdo, sdo_batch, lambda: sync.producing,
@@ -160,8 +162,9 @@ class DriveService:
     def stop(self) -> None:
         """Answer every command in progress, then send ``on_shutdown`` to every powered drive.
 
-        Called first in the gateway's shutdown, while frames may still go out. Waits at most
-        ``safety.SHUTDOWN_WAIT`` for the drives to take the stop.
+        Called first in the gateway's shutdown, while frames may still go out and TPDOs are
+        still taken. Waits at most ``safety.SHUTDOWN_WAIT`` for the drives to take the stop,
+        and as long again for their statuswords to show it (``_show_stops``).
         """
         with self._lock:
             if self._closing:
@@ -169,9 +172,34 @@ class DriveService:
             self._closing = True
         self._cycle.stop()
         self._runner.close()
-        safety.stop_motion(self._drives.values(), self.settings, self._lock, SHUTTING_DOWN)
+        self._show_stops(safety.stop_motion(self._drives.values(), self.settings, self._lock,
+                                            SHUTTING_DOWN))
         for node_id in self._drives:
             self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
+
+    def _show_stops(self, stopped: List[Tuple[DriveRecord, int]]) -> None:
+        """Wait until the drives stopped at shutdown show it in a statusword; tell it.
+
+        ``stopped``: each drive sent the stop, with the statuswords it had taken before. The
+        last state its subscribers get must not say OPERATION_ENABLED of a stopped drive. Its
+        TPDOs are still taken; one whose statusword no TPDO brings is read once by SDO (the
+        feedback cycle that polls it has ended). A drive that shows no stop within
+        ``safety.SHUTDOWN_WAIT`` is shown UNKNOWN: nothing follows it any more.
+        """
+        deadline = time.monotonic() + safety.SHUTDOWN_WAIT
+        for drive, _ in stopped:
+            if cia402.STATUSWORD not in drive.objects.mapped_feedback():
+                self.read_feedback(drive, [cia402.STATUSWORD], safety.SHUTDOWN_WAIT)
+
+        def shows_stop(drive: DriveRecord, before: int) -> bool:
+            return drive.updates > before and shown(drive).state != cia402.OPERATION_ENABLED
+        with self._statuswords:
+            self._statuswords.wait_for(lambda: all(shows_stop(*each) for each in stopped),
+                                       max(0.0, deadline - time.monotonic()))
+            for drive, before in stopped:
+                if not shows_stop(drive, before):
+                    drive.status = replace(drive.status, state=cia402.UNKNOWN)
+                    self._tell(drive)
 
     def pause(self, reason: str) -> None:
         """End what runs, then stop every powered drive as at shutdown (a node deactivated).
@@ -475,6 +503,8 @@ class DriveService:
                 self._pdo.end_streams(drive.node_id)
             drive.status = new
             drive.count(values)
+            if cia402.STATUSWORD in values:
+                self._statuswords.notify_all()
             changed = old.told != new.told
             if changed and told:
                 self._tell(drive)

@@ -54,8 +54,7 @@ async def wait_for_standstill(service, drive, until: Callable, read_timeout: flo
     ``just_halted``: the halt was just handed out (and may wait for a SYNC to apply).
     """
     if just_halted and drive.objects.applied_at_sync(cia402.CONTROLWORD):
-        for _ in range(2):
-            await _next_sync(service.sync)
+        await until_applied_at_sync(service.sync)
     while True:
         read = await asyncio.wrap_future(service.read_feedback(drive, STANDSTILL_READS,
                                                                read_timeout))
@@ -63,6 +62,16 @@ async def wait_for_standstill(service, drive, until: Callable, read_timeout: flo
             await asyncio.wait_for(until(drive, _standing_since(
                 drive, read, service.status(drive.node_id).mode)), REREAD)
             return
+
+
+async def until_applied_at_sync(sync) -> None:
+    """Return once a controlword just sent in a synchronous RPDO is applied.
+
+    The drive applies it at the SYNC after the one its frame followed: two SYNCs, one more
+    than needed, for a frame that went out late.
+    """
+    for _ in range(2):
+        await _next_sync(sync)
 
 
 async def _next_sync(sync) -> None:

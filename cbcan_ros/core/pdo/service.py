@@ -139,14 +139,16 @@ class PdoService:
             self._thread.start()
 
     def stop(self) -> None:
-        """Answer every write still waiting for a SYNC; stop reading, receiving, sending."""
+        """Answer every write still waiting for a SYNC; stop reading mappings and sending.
+
+        TPDOs are still taken until :meth:`stop_receiving`: the statuswords that show the
+        drives' stops at shutdown, written after this.
+        """
         with self._lock:
             self._closing = True
             self._streams.clear()
             pending, self._pending_sync = self._pending_sync, {}
             self._lock.notify_all()
-            self._by_cob.clear()
-            self._follow_cob_ids()
         for futures in pending.values():
             for future, *_ in futures:
                 answer(future, SdoResult.failed(f'{SHUTTING_DOWN}; it was not sent'))
@@ -156,6 +158,12 @@ class PdoService:
             self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
         # The mapping reader is not waited for: it may wait for an SDO answer, which the
         # gateway gives ("shutting down") right after this; it then installs nothing.
+
+    def stop_receiving(self) -> None:
+        """Take no more TPDOs (after :meth:`stop`)."""
+        with self._lock:
+            self._by_cob.clear()
+            self._follow_cob_ids()
 
     def _follow_cob_ids(self) -> None:
         """Subscribe to exactly the COB-IDs of ``_by_cob`` (called with the lock held).
@@ -336,11 +344,12 @@ class PdoService:
         stop, then a frame with the controlword that ran the drive): one waiting for the next
         SYNC goes out carrying them, and while SYNC is produced a synchronous RPDO's frame is
         sent again at once, since the device keeps the last one it received until the next
-        SYNC applies it; at shutdown too (the drives' stops are written after this service
-        stopped, SYNC goes on until after them). ``resend`` False (the write's own frame
-        waits for the next SYNC): frames still to be sent carry them, and a frame the device
-        got since the last SYNC (a stream's, sent at once) is sent again carrying them right
-        after the write's frame, so no RPDO applied at the same SYNC undoes it.
+        SYNC applies it (those it holds unapplied first); at shutdown too (the drives' stops
+        are written after this service stopped, SYNC goes on until after them). ``resend``
+        False (the write's own frame waits for the next SYNC): frames still to be sent carry
+        them, and a frame the device got since the last SYNC (a stream's, sent at once) is
+        sent again carrying them right after the write's frame, so no RPDO applied at the
+        same SYNC undoes it.
         """
         later = []  # frames the device holds for the next SYNC: sent again after it
         with self._frames:  # a SYNC flush of the frame before these values cannot come last
@@ -363,11 +372,14 @@ class PdoService:
                         continue
                     if not (mapping.synchronous and self._sync.producing):
                         continue
+                    held = self._waits_for_sync(device, number)
                     if resend:
-                        again.append((mapping, device.last_sent[number]))
-                    elif self._waits_for_sync(device, number):
+                        again.append((not held, mapping, device.last_sent[number]))
+                    elif held:
                         later.append((number, device.life, mapping))
-            for mapping, frame in again:
+            # The frames the device holds go first: a SYNC (another master's) between two of
+            # these would apply the older controlword of one held after one carrying them.
+            for _, mapping, frame in sorted(again, key=lambda each: each[0]):
                 self._send(mapping, frame, stopping=True)
         for number, life, mapping in later:
             self._sync.after_next_sync(lambda n=number, lf=life, m=mapping: self._send_again(
