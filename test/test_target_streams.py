@@ -165,16 +165,7 @@ def test_a_stop_in_the_cycle_of_a_streamed_target_is_not_undone_at_the_sync(rig,
             axis.drive.set_value(0x605A, 0, option)
         streaming(axis, VENDOR)  # the targets in RPDO 4 now, not by SDO
         axis.stop_streams()
-        client = axis.client(DriveCommand, 'drive_command')
-        since = len(axis.recorder.frames)
-        axis.recorder.first(lambda m: m.arbitration_id == SYNC, 'a SYNC', since)
-        axis.publisher.publish(Float64(data=float(VELOCITY)))
-        answer = wait_for_future(client.call_async(DriveCommand.Request(
-            node_id=NODE, command=command, timeout=2.0)), ANSWER + 2.0)
-        axis.recorder.mark()
-        frames = axis.recorder.messages()
-        stop = next((number for number in range(since, len(frames))
-                     if stopped(VENDOR.controlword(frames[number]))), None)
+        answer, frames, stop = stop_after_a_target(axis, command, stopped)
         if stop is not None:
             before, after = window_of(frames, stop)
             older = [m for m in frames[before + 1:after] if VENDOR.controlword(m) is not None
@@ -191,6 +182,24 @@ def test_a_stop_in_the_cycle_of_a_streamed_target_is_not_undone_at_the_sync(rig,
                 return
         axis.node.stop()
     pytest.skip('the stop never came in the SYNC cycle of a target (machine too slow)')
+
+
+def stop_after_a_target(axis, command: str, stopped):
+    """Publish a target right after a SYNC, then call ``command`` (a stop) at once.
+
+    Returns the answer, the frames recorded until it came, and the position among them of
+    the first frame whose controlword is ``stopped`` (None when there is none).
+    """
+    client = axis.client(DriveCommand, 'drive_command')
+    since = len(axis.recorder.frames)
+    axis.recorder.first(lambda m: m.arbitration_id == SYNC, 'a SYNC', since)
+    axis.publisher.publish(Float64(data=float(VELOCITY)))
+    answer = wait_for_future(client.call_async(DriveCommand.Request(
+        node_id=NODE, command=command, timeout=2.0)), ANSWER + 2.0)
+    axis.recorder.mark()
+    frames = axis.recorder.messages()
+    return answer, frames, next((number for number in range(since, len(frames))
+                                 if stopped(VENDOR.controlword(frames[number]))), None)
 
 
 def controlwords_taken(drive) -> list:
@@ -250,16 +259,7 @@ def test_another_masters_sync_right_after_a_stops_frame_does_not_undo_it(rig, co
         axis.stop_streams()
         taken = controlwords_taken(axis.drive)
         sync_after_first(axis.drive, VENDOR, stopped)
-        client = axis.client(DriveCommand, 'drive_command')
-        since = len(axis.recorder.frames)
-        axis.recorder.first(lambda m: m.arbitration_id == SYNC, 'a SYNC', since)
-        axis.publisher.publish(Float64(data=float(VELOCITY)))
-        answer = wait_for_future(client.call_async(DriveCommand.Request(
-            node_id=NODE, command=command, timeout=2.0)), ANSWER + 2.0)
-        axis.recorder.mark()
-        frames = axis.recorder.messages()
-        stop = next((number for number in range(since, len(frames))
-                     if stopped(VENDOR.controlword(frames[number]))), None)
+        answer, frames, stop = stop_after_a_target(axis, command, stopped)
         if stop is not None:
             before, _ = window_of(frames, stop)
             older = [m for m in frames[before + 1:stop] if VENDOR.controlword(m) is not None
