@@ -15,13 +15,12 @@ clock as it takes it. An adapter's own timestamp is never used: adapters' clocks
 from the host's (by seconds on some) and drift. A frame whose handlers are all marked
 :func:`prompt` (they return at once: SDO answers, heartbeats, PDOs, LSS answers) is handed
 to canopen by the receive thread itself when nothing is waiting for dispatch, which spares
-the frame a wake-up of another thread; a frame nobody subscribed to (on udp_multicast every
-frame the gateway sends comes back) then goes no further. Every other frame, and every
-frame behind it, goes to the dispatch thread in the order taken. So a frame handler that
-takes its time (or a burst of frames) holds up only the dispatch: frames are still taken
-and stamped as they come, a frame that was on the bus before a request was sent is stamped
-before it (and the SDO client can tell it is not the request's answer), and handlers see
-the frames in the order they were received, one at a time.
+the frame a wake-up of another thread. Every other frame, and every frame behind it, goes
+to the dispatch thread in the order taken. So a frame handler that takes its time (or a
+burst of frames) holds up only the dispatch: frames are still taken and stamped as they
+come, a frame that was on the bus before a request was sent is stamped before it (and the
+SDO client can tell it is not the request's answer), and handlers see the frames in the
+order they were received, one at a time.
 """
 
 import contextlib
@@ -356,13 +355,7 @@ class BusSupervisor:
             self._received += 1
             frame_id = message.arbitration_id
             if not waiting:  # (a loop, not all(): this runs for every frame)
-                handlers = subscribers.get(frame_id)
-                if not handlers:
-                    # Nobody takes it (on udp_multicast, every frame sent comes back): canopen's
-                    # notify would only hand it to its node scanner, which the gateway never
-                    # reads. Spared, the frame holds the interpreter lock a little less.
-                    continue
-                for handler in handlers:
+                for handler in subscribers.get(frame_id, ()):
                     if not getattr(handler, 'prompt_handler', False):
                         waiting = True
                         break
