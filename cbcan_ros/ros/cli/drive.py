@@ -40,6 +40,10 @@ TARGET_KINDS = {cia402.TARGET_POSITION: 'a position', cia402.TARGET_VELOCITY: 'a
 # publish() lost 1 sample in 15 here (measured with a best-effort subscriber in another
 # process); with this wait none of 55 was lost.
 LINGER = 0.3
+# How long a drive state that refuses a target is given to be followed by a newer one: the
+# gateway publishes a change a moment after it answered the command that made it (an enable
+# just answered), a few milliseconds later on a busy machine.
+STATE_SETTLE = 0.5
 
 node_argument = ranged('node', 1, MAX_NODE_ID)
 
@@ -190,6 +194,8 @@ def cmd_target(client: Client, args) -> int:
             spin_until(lambda: publisher.get_subscription_count() and states, client.wait)
             if not publisher.get_subscription_count():
                 raise _no_drive(client, node_id)
+            if states and _target_refusal(states[-1]):
+                spin_until(lambda: not _target_refusal(states[-1]), STATE_SETTLE)
             refusal = _target_refusal(states[-1]) if states else None
             if refusal:
                 print(f'error: {refusal}', file=sys.stderr)
