@@ -738,3 +738,44 @@ def test_a_frame_due_after_a_late_sync_waits_for_it_and_follows_it():
         assert producer.open_for_rpdos(), 'not open for RPDOs right after the SYNC went out'
     finally:
         producer.stop()
+
+
+class _CountingBus(_HeldBus):
+    """A bus with no timer of its own whose sends go out at once; ``order`` lists them."""
+
+    def send(self, frame) -> None:
+        assert frame.arbitration_id == SYNC
+        self.order.append('SYNC')
+
+
+def test_a_frame_waiting_for_a_sync_that_was_skipped_waits_for_the_next_one_sent():
+    # The gateway's SYNC thread runs late (held up here by a callback of the SYNC before:
+    # on a machine, a busy process) past half a period after a SYNC was due: that SYNC is
+    # skipped. A frame that waits for "the next SYNC" must still go out after a SYNC, not at
+    # the moment of the skipped one: else the drive holds it together with a stream's frame
+    # sent before the skipped SYNC (the grid says that SYNC applied it, so a halt does not
+    # send it again carrying the halt), and applies both at the same SYNC, the older
+    # controlword in the later RPDO undoing the halt.
+    period = 0.2
+    bus = _CountingBus()
+    producer = SyncProducer(bus, _Network(), period)
+    producer.start()
+    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
+    held = threading.Event()
+    try:
+        wait_until(lambda: bus.order == ['SYNC'], ANSWER, 'the first SYNC')
+        first = producer.next_point(0.0) - period  # the grid point of the first SYNC
+        assert producer.after_next_sync(lambda: (held.set(), bus.release.wait(ANSWER)))
+        wait_until(held.is_set, ANSWER, 'the SYNC thread held up after the second SYNC')
+        sent = len(bus.order)
+        # Now late for the next SYNC by more than half a period: it will be skipped.
+        wait_until(lambda: time.monotonic() > first + (sent + 0.65) * period, ANSWER,
+                   'the thread late by more than half a period')
+        assert producer.after_next_sync(lambda: bus.order.append('RPDO'))
+        bus.release.set()
+        wait_until(lambda: 'RPDO' in bus.order, ANSWER, 'the frame sent')
+        assert bus.order[sent:sent + 2] == ['SYNC', 'RPDO'], (
+            f'{bus.order[sent:]}: the frame went out with no SYNC before it')
+    finally:
+        bus.release.set()
+        producer.stop()
