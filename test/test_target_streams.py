@@ -153,9 +153,12 @@ def test_a_stop_in_the_cycle_of_a_streamed_target_is_not_undone_at_the_sync(rig,
                                                                              option):
     # Vendor layout, synchronous RPDOs, a slow SYNC (200 ms) so that this process can place
     # a target and the stop in the first quarter of one cycle: the target goes out at once
-    # (in before the next SYNC), the stop's frame right after a quarter period, both before
-    # the same SYNC. A gateway whose stop did not come in that cycle (a slow moment) is
-    # replaced by a fresh one, up to a few times.
+    # (in before the next SYNC). Where the bus times SYNC itself the stop's frame goes a
+    # quarter period after the SYNC, before the same SYNC as the target: the case under test.
+    # Where the gateway's thread sends SYNC (udp_multicast here) it goes right after the next
+    # SYNC, a window of its own: the drive must hold the stop all the same (once this test
+    # waited for the shared window there, which never comes, and always skipped). A gateway
+    # whose stop did not come (a slow moment) is replaced by a fresh one, up to a few times.
     stopped = STOPS[command]
     for _attempt in range(4):
         axis = rig(VENDOR, '-p', 'drives.command_timeout:=0.0', period=0.2)
@@ -174,21 +177,19 @@ def test_a_stop_in_the_cycle_of_a_streamed_target_is_not_undone_at_the_sync(rig,
         stop = next((number for number in range(since, len(frames))
                      if stopped(VENDOR.controlword(frames[number]))), None)
         if stop is not None:
+            # With an older controlword beside it, the drive holds both for one SYNC.
             before, after = window_of(frames, stop)
-            older = [m for m in frames[before + 1:after] if VENDOR.controlword(m) is not None
-                     and not stopped(VENDOR.controlword(m))]
-            if older:  # the case under test: the drive holds both for one SYNC
-                axis.recorder.first(lambda m: m.arbitration_id == SYNC, 'a SYNC',
-                                    axis.recorder.mark())  # the SYNC after the answer
-                held = (axis.drive.velocity == 0 if command == 'halt'
-                        else axis.drive.drive_state != 'OPERATION_ENABLED')
-                assert answer.success and held, (
-                    f'{command} answered {answer.success} ({answer.message!r}); the drive is '
-                    f'{axis.drive.drive_state} at velocity {axis.drive.velocity}; its SYNC '
-                    f'window held {shown(commanding(frames[before + 1:after]))}')
-                return
+            axis.recorder.first(lambda m: m.arbitration_id == SYNC, 'a SYNC',
+                                axis.recorder.mark())  # the SYNC after the answer
+            held = (axis.drive.velocity == 0 if command == 'halt'
+                    else axis.drive.drive_state != 'OPERATION_ENABLED')
+            assert answer.success and held, (
+                f'{command} answered {answer.success} ({answer.message!r}); the drive is '
+                f'{axis.drive.drive_state} at velocity {axis.drive.velocity}; its SYNC '
+                f'window held {shown(commanding(frames[before + 1:after]))}')
+            return
         axis.node.stop()
-    pytest.skip('the stop never came in the SYNC cycle of a target (machine too slow)')
+    pytest.skip('the stop never came (machine too slow)')
 
 
 # 2. Every way out ends the stream.
