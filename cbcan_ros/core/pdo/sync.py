@@ -59,8 +59,8 @@ def sync_frames(counter_overflow: int) -> List[can.Message]:
 class _ThreadTask:
     """SYNC sent by the producer's thread on the grid from the task's start (see the module).
 
-    ``sent``: the grid cycle of the last SYNC sent (-1: none yet); ``count``: SYNCs sent, which
-    picks the counter's frame.
+    ``sent``: the last grid cycle whose SYNC was sent or skipped (-1: none yet); ``count``:
+    SYNCs sent, which picks the counter's frame.
     """
 
     def __init__(self, frames: List[can.Message]):
