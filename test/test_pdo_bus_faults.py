@@ -138,3 +138,29 @@ def test_a_send_failing_while_a_write_waits_for_its_sync_answers_both_and_sendin
         wait_until(lambda: device.state == 5, RECOVERY, 'the device OPERATIONAL')
     finally:
         device.stop()
+
+
+def test_the_sync_counter_runs_unbroken_and_starts_again_at_1_after_the_bus_came_back(
+        make_gateway):
+    # SYNC with a counter, sent by the gateway's own SYNC thread (a bus without a timer of
+    # its own): 1, 2, ... overflow, 1, ... with none left out or sent twice, none while the
+    # adapter is pulled, and from 1 again on the reopened bus, as after a device's reset.
+    channel = new_channel()
+    faults = FaultController.get(channel)
+    overflow = 5
+    gateway = make_gateway(can__interface='faulty', can__channel=channel,
+                           simulation__devices=None, sync__period=0.02,
+                           sync__counter_overflow=overflow)
+    wait_until(lambda: syncs(faults) >= 2 * overflow + 2, PROMPT, 'SYNCs')
+    faults.fail_open('adapter gone')
+    faults.fail_receive('adapter unplugged')
+    wait_until(lambda: not gateway.node.gateway.sync.status().running, PROMPT, 'SYNC stopped')
+    before = [message.data[0] for message in faults.sent if message.arbitration_id == 0x80]
+    faults.clear()
+    wait_until(lambda: syncs(faults) >= len(before) + 2 * overflow + 2, RECOVERY,
+               'SYNC after the bus came back')
+    after = [message.data[0] for message in faults.sent
+             if message.arbitration_id == 0x80][len(before):]
+    for run in (before, after):
+        assert run[0] == 1 and all(later == earlier % overflow + 1 for earlier, later
+                                   in zip(run, run[1:], strict=False)), (before, after)

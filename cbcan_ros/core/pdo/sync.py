@@ -28,7 +28,7 @@ import math
 import statistics
 import threading
 import time
-from typing import Callable, List, Optional
+from typing import Callable, List, Optional, Tuple
 
 import can
 
@@ -59,8 +59,8 @@ def sync_frames(counter_overflow: int) -> List[can.Message]:
 class _ThreadTask:
     """SYNC sent by the producer's thread on the grid from the task's start (see the module).
 
-    ``sent``: the grid cycle of the last SYNC sent (-1: none yet); ``count``: SYNCs sent, which
-    picks the counter's frame.
+    ``sent``: the last grid cycle whose SYNC was sent or skipped (-1: none yet); ``count``:
+    SYNCs sent, which picks the counter's frame.
     """
 
     def __init__(self, frames: List[can.Message]):
@@ -272,15 +272,18 @@ class SyncProducer:
                 if before == due:
                     callbacks, self._before_sync = callbacks + self._before_sync, []
             if sync == due:
-                cycle = self._send_sync(task)
+                cycle, sent = self._send_sync(task)
                 with self._lock:  # a frame held back until now goes out right after it
                     if self._task is task:
                         task.sent = cycle
-                        callbacks, self._after_sync = callbacks + self._after_sync, []
+                        # Not after a SYNC skipped: a frame would reach the device with the
+                        # ones of the cycle before, which the time grid takes as applied.
+                        if sent:
+                            callbacks, self._after_sync = callbacks + self._after_sync, []
             _run_all(callbacks)
 
-    def _send_sync(self, task: _ThreadTask) -> int:
-        """Send the SYNC of the grid cycle due now and return the cycle.
+    def _send_sync(self, task: _ThreadTask) -> Tuple[int, bool]:
+        """Send the SYNC of the grid cycle due now; return the cycle and whether it went out.
 
         One later than half a period is skipped rather than sent late: after a stall, SYNCs
         sent back to back would give the devices cycles of no length, and the next one on
@@ -294,9 +297,10 @@ class SyncProducer:
                 try:
                     self._supervisor.send(task.frames[task.count % len(task.frames)])
                     task.count += 1
+                    return cycle, True
                 except BusDown:
                     pass  # the bus thread reports it down; this task ends then
-        return cycle
+        return cycle, False
 
     @prompt
     def _on_sync_heard(self, _can_id: int, _data: bytearray, timestamp: float) -> None:
