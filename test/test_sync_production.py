@@ -89,6 +89,12 @@ class Rig:
                 and bytes(message.data[:4]) == value.to_bytes(4, 'little')), None)
         return wait_until(found, ANSWER, f'the frame of {value} recorded') - 1
 
+    def syncs_before_frame_of(self, value: int, since: float) -> list:
+        """Return when the SYNCs recorded after ``since`` and before ``value``'s frame came."""
+        at = self.frame_of(value)
+        return [stamp for stamp, message in list(self.recorder.frames)[:at]
+                if message.arbitration_id == SYNC and stamp > since]
+
     def close(self) -> None:
         """Stop recording."""
         self.recorder.close()
@@ -173,10 +179,8 @@ def test_a_synchronous_write_goes_out_after_a_sync_that_came_after_the_call(
             answer = call(rig.pdo_write, rig.request(float(value)), 'pdo_write', rig.node,
                           ANSWER)
             assert answer.success, answer.message
-            at = rig.frame_of(value)
-            syncs = [stamp for stamp, message in list(rig.recorder.frames)[:at]
-                     if message.arbitration_id == SYNC and stamp > called]
-            assert syncs, f'write {number}: its frame went out before any SYNC after the call'
+            assert rig.syncs_before_frame_of(value, called), (
+                f'write {number}: its frame went out before any SYNC after the call')
     finally:
         rig.close()
 
@@ -208,10 +212,8 @@ def test_a_synchronous_write_waiting_through_a_stall_goes_out_after_a_sync(
                 rig.node.process.send_signal(signal.SIGCONT)
             answer = wait_for_future(written, ANSWER)
             assert answer.success, answer.message
-            at = rig.frame_of(value)
-            between = [stamp for stamp, message in list(rig.recorder.frames)[:at]
-                       if message.arbitration_id == SYNC and stamp > called]
-            assert between, 'the write went out with no SYNC after the call before it'
+            assert rig.syncs_before_frame_of(value, called), (
+                'the write went out with no SYNC after the call before it')
             return
         raise AssertionError('the recording was late at every SYNC')
     finally:
