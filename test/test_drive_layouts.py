@@ -281,6 +281,13 @@ def test_a_drive_reset_to_its_factory_pdos_is_configured_from_its_eds_and_moves(
     axis = rig(pdos=layout_pdos('sdo_only'), **{'pdo.configure': True,
                                                 f'node_{NODE}.eds': str(EXAMPLE_EDS)})
     gateway = axis.gateway.node.gateway
+
+    def boot():
+        return next(state for state in gateway.boot.states() if state.node_id == NODE)
+    # The gateway's start is a boot too, which writes the EDS's PDOs already: only a boot
+    # counted after the reset is the reset's.
+    wait_until(lambda: boot().state == 'BOOTED', WAIT, 'the boot at start ended')
+    booted = boot().boots
     assert axis.gateway.call('nmt_command', node_id=NODE, command=129).success  # reset node
 
     def vendor_layout_read():
@@ -290,11 +297,12 @@ def test_a_drive_reset_to_its_factory_pdos_is_configured_from_its_eds_and_moves(
     wait_until(vendor_layout_read, WAIT, "the EDS's RPDO 3 (controlword, target) read back")
     # The mapping is read within the boot, which ends a moment later: enable is refused
     # until it has (seen under load, the boot thread starved past the checks below).
-    wait_until(lambda: next(state for state in gateway.boot.states()
-                            if state.node_id == NODE).state == 'BOOTED', WAIT,
-               'the boot of the drive ended')
+    wait_until(lambda: boot().state == 'BOOTED' and boot().boots > booted, WAIT,
+               'the boot of the drive after its reset ended')
     assert axis.gateway.call('nmt_command', node_id=NODE, command=1).success
-    wait_until(lambda: axis.latest_state() == 'SWITCH_ON_DISABLED'
+    # The gateway's own state (UNKNOWN while it reads the drive again), not the last one
+    # published, which may be from before the reset.
+    wait_until(lambda: gateway.drives.status(NODE).state == 'SWITCH_ON_DISABLED'
                and gateway.monitor.status(NODE).state == OPERATIONAL, WAIT,
                'the drive read again, heard OPERATIONAL: its PDOs are used')
     axis.enable(PP)
