@@ -95,6 +95,9 @@ class DriveService:
         self._closing = False
         # Set once shutdown has shown the drives' stops: what is taken later is not told.
         self._stops_shown = False
+        # Set by the gateway: ends the transfers under way with the drives (and answers those
+        # queued), so that the stops are not queued behind them past their wait.
+        self.end_transfers: Optional[Callable[[], None]] = None
         # Drives whose last target was not sent: the first failure of a run is logged, the
         # rest of it not (a stream at 250 Hz would log every one), until one is sent again.
         self._targets_failing: set = set()
@@ -174,6 +177,8 @@ class DriveService:
             self._closing = True
         self._cycle.stop()
         self._runner.close()
+        if self.end_transfers is not None and safety.ON_SHUTDOWN[self.settings.on_shutdown]:
+            self.end_transfers()
         self._show_stops(safety.stop_motion(self._drives.values(), self.settings, self._lock,
                                             SHUTTING_DOWN))
         for node_id in self._drives:
