@@ -196,6 +196,7 @@ class Gateway:
                                                                          True),
                                    self.sync, config.write_protection, self._bus_down,
                                    self.heartbeat.beat_now)
+        self.drives.end_transfers = self._end_drive_transfers
         self.emcy.add_listener(lambda emergency: self.drives.on_emcy(
             emergency.node_id, emergency.error_code))
         self._deadlines = Deadlines()
@@ -298,6 +299,18 @@ class Gateway:
         self.emcy.stop()
         self._deadlines.stop()
         self.bus.stop()
+
+    def _end_drive_transfers(self) -> None:
+        """End the transfers under way with the drives; answer what waits (at shutdown).
+
+        A transfer under way (a caller's long upload, a poll of a silent drive) would keep the
+        drive's stop queued behind it past the stop's own wait: never sent.
+        """
+        with self._lock:
+            channels = [channel for node_id, channel in self._channels.items()
+                        if node_id in self.drives.node_ids]
+        for channel in channels:
+            channel.fail_all(SHUTTING_DOWN, abort_codes.DEVICE_STATE)
 
     def sdo_read(self, node_id: int, index: int, subindex: int, max_size: int = 0,
                  timeout: float = 0.0) -> 'Future[SdoResult]':

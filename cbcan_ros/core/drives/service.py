@@ -93,6 +93,11 @@ class DriveService:
         self._runner = CoroutineRunner('drives')
         self._commands = DriveCommands(self)
         self._closing = False
+        # Set once shutdown has shown the drives' stops: what is taken later is not told.
+        self._stops_shown = False
+        # Set by the gateway: ends the transfers under way with the drives (and answers those
+        # queued), so that the stops are not queued behind them past their wait.
+        self.end_transfers: Optional[Callable[[], None]] = None
         # Drives whose last target was not sent: the first failure of a run is logged, the
         # rest of it not (a stream at 250 Hz would log every one), until one is sent again.
         self._targets_failing: set = set()
@@ -172,6 +177,8 @@ class DriveService:
             self._closing = True
         self._cycle.stop()
         self._runner.close()
+        if self.end_transfers is not None and safety.ON_SHUTDOWN[self.settings.on_shutdown]:
+            self.end_transfers()
         self._show_stops(safety.stop_motion(self._drives.values(), self.settings, self._lock,
                                             SHUTTING_DOWN))
         for node_id in self._drives:
@@ -200,6 +207,10 @@ class DriveService:
                 if not shows_stop(drive, before):
                     drive.status = replace(drive.status, state=cia402.UNKNOWN)
                     self._tell(drive)
+            # Final: a TPDO or an SDO answer still taken after this (one in flight as the
+            # wait ended, of a drive that ignored the stop) must not tell OPERATION_ENABLED
+            # after the UNKNOWN its subscribers were told last.
+            self._stops_shown = True
 
     def pause(self, reason: str) -> None:
         """End what runs, then stop every powered drive as at shutdown (a node deactivated).
@@ -484,6 +495,8 @@ class DriveService:
         read by SDO, asked after that many TPDOs; what later TPDOs brought is newer.
         """
         with self._lock:
+            if self._stops_shown:
+                return  # shutdown has shown what it decided (``_show_stops``)
             if since is not None:
                 values = drive.newest(values, since, bool(reread))
             if not values:
