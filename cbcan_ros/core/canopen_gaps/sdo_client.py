@@ -208,9 +208,7 @@ class StrictSdoClient(SdoClient):
             self._sent_at = self._began = time.monotonic()
         else:
             self._sent_at = time.monotonic()
-        # The checks' usual outcome (nothing ended, nothing arrived) costs no call.
-        if self._cancelled is not None or self._aborted is not None:
-            self._raise_if_ended()
+        self._raise_if_ended()
         if self._device_aborts and self._kind == _CCS_BLOCK_DOWNLOAD and self.initiated:
             self._raise_device_abort()
         self.network.send_message(self.rx_cobid, request)
