@@ -60,16 +60,22 @@ class _ThreadTask:
     """SYNC sent by the producer's thread on the grid from the task's start (see the module).
 
     ``sent``: the last grid cycle whose SYNC was sent or skipped (-1: none yet); ``count``:
-    SYNCs sent, which picks the counter's frame.
+    SYNCs sent, which picks the counter's frame; ``sending``: held while the thread sends one.
     """
 
-    def __init__(self, frames: List[can.Message]):
+    def __init__(self, frames: List[can.Message], sending: threading.Lock):
         self.frames = frames
         self.sent = -1
         self.count = 0
+        self._sending = sending
 
     def stop(self) -> None:
-        """Nothing to stop: the thread sends only while this is the producer's task."""
+        """Return once a SYNC on its way out is out; none follows.
+
+        The thread sends only while this is the producer's task.
+        """
+        with self._sending:
+            pass
 
 
 @dataclass(frozen=True)
@@ -214,7 +220,8 @@ class SyncProducer:
         frames = sync_frames(self.counter_overflow)
         try:
             self._task = (self._supervisor.send_periodic(frames, self.period)
-                          if self._supervisor.times_periodic_sends() else _ThreadTask(frames))
+                          if self._supervisor.times_periodic_sends()
+                          else _ThreadTask(frames, self._sending))
         except BusDown as error:
             LOGGER.warning('SYNC could not be started: %s', error)
             return False
@@ -229,10 +236,7 @@ class SyncProducer:
     def _stop_task(self) -> List[Callable[[], None]]:
         """Stop the task; return the callbacks that waited for its SYNC (run them unlocked)."""
         task, self._task = self._task, None
-        if isinstance(task, _ThreadTask):
-            with self._sending:
-                pass  # a SYNC on its way out is out before the task ends
-        elif task is not None:
+        if task is not None:
             try:
                 task.stop()
             except Exception as error:  # noqa: BLE001 - a dead adapter may fail to stop it
