@@ -195,8 +195,7 @@ class Gateway:
                                    lambda accesses, timeout: self._batch(accesses, timeout,
                                                                          True),
                                    self.sync, config.write_protection, self._bus_down,
-                                   self.heartbeat.beat_now)
-        self.drives.end_transfers = self._end_drive_transfers
+                                   self.heartbeat.beat_now, self._end_drive_transfers)
         self.emcy.add_listener(lambda emergency: self.drives.on_emcy(
             emergency.node_id, emergency.error_code))
         self._deadlines = Deadlines()

@@ -72,10 +72,14 @@ class DriveService:
     def __init__(self, network, settings: DriveSettings, monitor, pdo, sdo_batch,
                  sync, write_protection,
                  bus_down: Callable[[], Optional[str]] = lambda: None,
-                 beat_now: Callable[[], None] = lambda: None):
+                 beat_now: Callable[[], None] = lambda: None,
+                 end_transfers: Callable[[], None] = lambda: None):
         self.settings, self._network, self._monitor, self.sync = settings, network, monitor, sync
         self._pdo = pdo
         self._sdo_batch, self._beat_now = sdo_batch, beat_now
+        # Ends the transfers under way with the drives (and answers those queued), so that
+        # the stops at shutdown are not queued behind them past their wait.
+        self._end_transfers = end_transfers
         self._bus_down = bus_down
         self._lock = threading.RLock()
         # Notified at every statusword taken: shutdown waits there for those of its stops.
@@ -95,9 +99,6 @@ class DriveService:
         self._closing = False
         # Set once shutdown has shown the drives' stops: what is taken later is not told.
         self._stops_shown = False
-        # Set by the gateway: ends the transfers under way with the drives (and answers those
-        # queued), so that the stops are not queued behind them past their wait.
-        self.end_transfers: Optional[Callable[[], None]] = None
         # Drives whose last target was not sent: the first failure of a run is logged, the
         # rest of it not (a stream at 250 Hz would log every one), until one is sent again.
         self._targets_failing: set = set()
@@ -177,8 +178,8 @@ class DriveService:
             self._closing = True
         self._cycle.stop()
         self._runner.close()
-        if self.end_transfers is not None and safety.ON_SHUTDOWN[self.settings.on_shutdown]:
-            self.end_transfers()
+        if safety.ON_SHUTDOWN[self.settings.on_shutdown]:
+            self._end_transfers()
         self._show_stops(safety.stop_motion(self._drives.values(), self.settings, self._lock,
                                             SHUTTING_DOWN))
         for node_id in self._drives:
