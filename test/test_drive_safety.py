@@ -283,13 +283,13 @@ class DriveRig:
         self._streams.append(targets)
         return targets
 
-    def enable_moving(self, heard: bool = True) -> Targets:
+    def enable_moving(self) -> Targets:
         """Start the drive, enable it in CSV and stream VELOCITY; return once it moves.
 
-        ``heard``: wait for the drive_state that shows the gateway has read the drive first.
+        It waits first for the drive_state that shows the gateway has read the drive: until
+        then an enable is refused.
         """
-        if heard:
-            self.wait_state('SWITCH_ON_DISABLED')
+        self.wait_state('SWITCH_ON_DISABLED')
         self.nmt_start()
         enabled = self.command('enable', CSV)
         assert enabled.success, enabled.message
@@ -654,9 +654,10 @@ def managed_transition(axis: DriveRig, transition_id: int) -> None:
 
 
 def configure_once_read(axis: DriveRig) -> None:
-    """Configure the managed node; return once it has read the drive (inactive still).
+    """Configure the managed node; return once it is reading the drive (inactive still).
 
-    Its last step of reading a drive is writing the consumer heartbeat (0x1016:1).
+    It writes the consumer heartbeat (0x1016:1) while it reads a drive; the read ends a few
+    SDO transfers later, which the drive_state published once active shows.
     """
     managed_transition(axis, Transition.TRANSITION_CONFIGURE)
     axis.recorder.first(consumer_write, 'the consumer heartbeat written to 0x1016:1',
@@ -671,7 +672,7 @@ def test_deactivate_and_shutdown_of_the_managed_node_quick_stop_the_drive(rig):
 
     configure_once_read(axis)
     transition(Transition.TRANSITION_ACTIVATE)
-    axis.enable_moving(heard=False)  # drive_state: see the test below
+    axis.enable_moving()
     before = axis.recorder.mark()
     transition(Transition.TRANSITION_DEACTIVATE)
     request = stop_frame_after(axis, QUICK_STOP, before)
