@@ -113,20 +113,26 @@ class StrictSdoClient(SdoClient):
         self._aborted: Optional[TransferAborted] = None
         self._cancelled: Optional[TransferCancelled] = None
         self._abort_on_cancel: Optional[int] = None
+        self.cancels = 0  # calls of cancel() so far, with the reason of the latest
+        self._cancel_reason = ''
         self.ignored_frames = 0  # frames of this transfer that answered nothing we asked
 
     def transfer(self, index: int, subindex: int, deadline: float, run: Callable[[], object],
-                 answer_within: Optional[float] = None):
+                 answer_within: Optional[float] = None, cancels: Optional[int] = None):
         """Run ``run()`` (canopen stream calls) as one transfer of ``index:subindex``.
 
         ``deadline`` bounds the whole transfer; with ``answer_within`` each answer is due
         that long after the latest request instead, and ``deadline`` is not used.
+        ``cancels``: :attr:`cancels` when the work this transfer is part of began; a cancel
+        since then (between the transfers of a batch) ends it before anything is sent.
 
         It raises only :class:`TransferAborted` (the first abort of the transfer, whatever
         canopen raised after it), :class:`TransferCancelled` or ``BusDown``. Anything else
         canopen raises ends the transfer with a general-error abort on the bus.
         """
         with self._lock:
+            if cancels is not None and cancels != self.cancels:
+                raise TransferCancelled(f'{self._cancel_reason}; not sent')
             self._mux = (index, subindex)
             self._kind = None
             self._deadline = deadline
@@ -176,6 +182,8 @@ class StrictSdoClient(SdoClient):
     def cancel(self, reason: str, abort_code: Optional[int] = None) -> None:
         """End the running transfer at once; send ``abort_code`` if it had started."""
         with self._lock:
+            self.cancels += 1
+            self._cancel_reason = reason
             if self._cancelled is None:
                 self._cancelled = TransferCancelled(reason)
                 self._abort_on_cancel = abort_code

@@ -85,6 +85,7 @@ class SdoChannel:
         self._aborts = 0
         self._timeouts = 0
         self._latencies: deque = deque(maxlen=LATENCY_SAMPLES)
+        self._cancels = 0  # the client's cancels when the running job was taken
         self._thread = threading.Thread(target=self._work, name=f'sdo-node-{node_id}',
                                         daemon=True)
         self._thread.start()
@@ -142,10 +143,17 @@ class SdoChannel:
         return self._submit(run, answer_within, None)
 
     def fail_all(self, reason: str, abort_code: Optional[int] = None) -> None:
-        """Answer every queued request with ``reason`` and end the running transfer."""
-        for job in self._jobs.take_all():
+        """Answer every queued request with ``reason`` and end the running one.
+
+        The running request's transfer ends, and so does the rest of it: a batch sends no
+        further access (a silent device would hold each until its timeout, and a stop sent
+        right after this behind them). Requests queued from now on run as usual.
+        """
+        with self._changed:  # each job is either taken here or taken before the cancel
+            jobs = self._jobs.take_all()
+            self._client.cancel(reason, abort_code)
+        for job in jobs:
             self._resolve(job, job.failed(SdoResult.failed(reason)))
-        self._client.cancel(reason, abort_code)
 
     def close(self, reason: str, abort_code: Optional[int]) -> None:
         """Refuse new requests, fail queued ones and end the running transfer."""
@@ -192,7 +200,7 @@ class SdoChannel:
 
     def _work(self) -> None:
         while True:
-            job = self._jobs.next(lambda taken: setattr(taken, 'started', time.monotonic()))
+            job = self._jobs.next(self._take)
             if job is None:
                 return
             if job.started >= job.deadline:
@@ -201,6 +209,11 @@ class SdoChannel:
             else:
                 self._resolve(job, job.run(job.deadline))
             del job  # an idle worker must not keep its last request (and answer) alive
+
+    def _take(self, job: _Job) -> None:
+        """Start ``job`` (the queue's lock held): a :meth:`fail_all` from now on ends it."""
+        job.started = time.monotonic()
+        self._cancels = self._client.cancels
 
     def _resolve(self, job: _Job, result) -> None:
         """Give ``job`` its one answer; every answer of this channel passes here.
@@ -256,7 +269,7 @@ class SdoChannel:
         """
         def attempt(block: bool) -> Optional[bytes]:
             return self._client.transfer(index, subindex, deadline, lambda: transfer(block),
-                                         answer_within)
+                                         answer_within, self._cancels)
 
         def run() -> Optional[bytes]:
             if self._block if block_first is None else block_first:
