@@ -41,6 +41,9 @@ class _Sync:
     def next_point(self, _fraction: float) -> None:
         return None  # no time grid: no frame counts as held for the next SYNC
 
+    def between_two_syncs(self) -> threading.Lock:
+        return threading.Lock()  # the test sends its SYNC between frames only on purpose
+
     def sync(self) -> None:
         callbacks, self._callbacks = self._callbacks, []
         for callback in callbacks:

@@ -103,6 +103,9 @@ class SyncProducer:
         self._lock = threading.Condition()
         # Held while the thread sends a SYNC: a task that ends waits for it, so none follows.
         self._sending = threading.Lock()
+        # Held while frames that must reach the devices between the same two SYNCs go out
+        # (``between_two_syncs``); taken before any other lock of this producer.
+        self._burst = threading.Lock()
         self._task = None
         self._task_start = 0.0
         self._grid_start = 0.0
@@ -158,6 +161,16 @@ class SyncProducer:
             self._before_sync.append(callback)
             self._lock.notify_all()
             return True
+
+    def between_two_syncs(self) -> threading.Lock:
+        """Return a lock whose holder's frames no SYNC of this thread splits.
+
+        A stop sent again in several synchronous RPDOs at once: a SYNC between two of them
+        would apply the one not sent yet, with the controlword that ran the drive, after the
+        stop. The thread's SYNC waits while it is held (a few frames). python-can's and the
+        kernel's periodic tasks cannot be held: there the frames' order is all that helps.
+        """
+        return self._burst
 
     def open_for_rpdos(self) -> bool:
         """Return whether a synchronous RPDO sent now is applied at the next SYNC.
@@ -296,7 +309,7 @@ class SyncProducer:
         cycles = (time.monotonic() - self._grid_start) / self.period
         cycle = math.floor(cycles)
         send = cycles - cycle <= 0.5
-        with self._sending:
+        with self._burst, self._sending:
             if send and self._task is task:  # not when the bus went down or shutdown began
                 try:
                     self._supervisor.send(task.frames[task.count % len(task.frames)])
