@@ -587,43 +587,6 @@ class _Network:
         pass
 
 
-class _SendingSupervisor:
-    """A bus without a periodic timer (the producer's thread sends SYNC): keeps what is sent."""
-
-    def __init__(self):
-        self.sent = []
-
-    def add_listener(self, _listener) -> None:
-        pass
-
-    def times_periodic_sends(self) -> bool:
-        return False
-
-    def send(self, message) -> None:
-        self.sent.append(message.arbitration_id)
-
-
-def test_no_sync_of_the_thread_comes_between_frames_that_must_not_be_split():
-    # A stop sent again in two synchronous RPDOs the drive holds: a SYNC between the two
-    # would apply the second's older controlword (the one that ran the drive) after the stop.
-    period = 0.002
-    supervisor = _SendingSupervisor()
-    producer = SyncProducer(supervisor, _Network(), period)
-    producer.start()
-    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
-    try:
-        wait_until(lambda: supervisor.sent.count(SYNC) >= 2, 5.0, 'SYNC produced')
-        with producer.between_two_syncs():
-            supervisor.sent.append('first')
-            time.sleep(10 * period)  # a machine busy for five periods between the frames
-            supervisor.sent.append('second')
-        wait_until(lambda: supervisor.sent[-1] == SYNC, 5.0, 'SYNC produced again')
-    finally:
-        producer.stop()
-    first, second = supervisor.sent.index('first'), supervisor.sent.index('second')
-    assert second == first + 1, f'SYNCs between the frames: {supervisor.sent[first:second]}'
-
-
 def producing(period: float):
     """Return (a SyncProducer whose bus came up, the first point of its schedule)."""
     producer = SyncProducer(_Supervisor(), _Network(), period)
@@ -895,6 +858,27 @@ class _CountingBus(_HeldBus):
     def send(self, frame) -> None:
         assert frame.arbitration_id == SYNC
         self.order.append('SYNC')
+
+
+def test_no_sync_of_the_thread_comes_between_frames_that_must_not_be_split():
+    # A stop sent again in two synchronous RPDOs the drive holds: a SYNC between the two
+    # would apply the second's older controlword (the one that ran the drive) after the stop.
+    period = 0.002
+    bus = _CountingBus()
+    producer = SyncProducer(bus, _Network(), period)
+    producer.start()
+    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
+    try:
+        wait_until(lambda: bus.order.count('SYNC') >= 2, 5.0, 'SYNC produced')
+        with producer.between_two_syncs():
+            bus.order.append('first')
+            time.sleep(10 * period)  # a machine busy for five periods between the frames
+            bus.order.append('second')
+        wait_until(lambda: bus.order[-1] == 'SYNC', 5.0, 'SYNC produced again')
+    finally:
+        producer.stop()
+    first, second = bus.order.index('first'), bus.order.index('second')
+    assert second == first + 1, f'SYNCs between the frames: {bus.order[first:second]}'
 
 
 def test_a_frame_waiting_for_a_sync_that_was_skipped_waits_for_the_next_one_sent():
