@@ -780,6 +780,14 @@ def test_a_bus_outage_is_no_sync_period_error_in_diagnostics():
     producer.stop()
 
 
+def sending_sync(bus, period: float) -> SyncProducer:
+    """Return a SyncProducer whose thread sends SYNC on ``bus`` (just come up)."""
+    producer = SyncProducer(bus, _Network(), period)
+    producer.start()
+    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
+    return producer
+
+
 class _HeldBus:
     """A bus with no timer of its own (the gateway's thread sends SYNC) that holds each send.
 
@@ -811,9 +819,7 @@ def test_a_frame_due_after_a_late_sync_waits_for_it_and_follows_it():
     # early, and the cycle after it would get none. Such a frame waits for the SYNC and goes
     # right after it.
     bus = _HeldBus()
-    producer = SyncProducer(bus, _Network(), 1.0)
-    producer.start()
-    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
+    producer = sending_sync(bus, 1.0)
     try:
         wait_until(bus.sending.is_set, ANSWER, 'the first SYNC on its way')
         assert not producer.open_for_rpdos(), 'open for RPDOs before the SYNC went out'
@@ -865,9 +871,7 @@ def test_no_sync_of_the_thread_comes_between_frames_that_must_not_be_split():
     # would apply the second's older controlword (the one that ran the drive) after the stop.
     period = 0.002
     bus = _CountingBus()
-    producer = SyncProducer(bus, _Network(), period)
-    producer.start()
-    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
+    producer = sending_sync(bus, period)
     try:
         wait_until(lambda: bus.order.count('SYNC') >= 2, 5.0, 'SYNC produced')
         with producer.between_two_syncs():
@@ -891,9 +895,7 @@ def test_a_frame_waiting_for_a_sync_that_was_skipped_waits_for_the_next_one_sent
     # controlword in the later RPDO undoing the halt.
     period = 0.2
     bus = _CountingBus()
-    producer = SyncProducer(bus, _Network(), period)
-    producer.start()
-    producer._on_bus_change(BusStatus(True, '', 0, 0, 0, 0))
+    producer = sending_sync(bus, period)
     held = threading.Event()
     try:
         wait_until(lambda: bus.order, ANSWER, 'the first SYNC')
