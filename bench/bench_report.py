@@ -158,8 +158,8 @@ def ratios(rows: Dict[str, dict]) -> List[tuple]:
 
     out = []
     value = _ratio(rows, 'sdo_read', ['raw', 'trigger'])
-    out.append(('sdo_read p50 / (raw p50 + Trigger p50)', '<= 1.2',
-                *check(value, lambda v: v <= 1.2, _number(value, 2))))
+    out.append(('sdo_read p50 / (raw p50 + Trigger p50)', '<= 1.1',
+                *check(value, lambda v: v <= 1.1, _number(value, 2))))
     for size in (150, 600):
         value = _ratio(rows, f'burst_sdo_{size}', [f'burst_trigger_{size}'])
         out.append((f'burst {size}: sdo_read calls/s / Trigger calls/s', '>= 0.8',
@@ -192,6 +192,12 @@ def ratios(rows: Dict[str, dict]) -> List[tuple]:
     value, text = _cpu_for_all_frames(load127)
     out.append(('idle node CPU, 127 devices @ 10 ms', '< 35 % of a core',
                 *check(value, lambda v: v < 35, text)))
+    reader = _value(load127, 'cpu_reader')
+    value = value / reader if value is not None and reader else None
+    out.append(('idle node CPU, 127 devices @ 10 ms / a bare python-can receiver of them',
+                '<= 1.3', *check(value, lambda v: v <= 1.3,
+                                 f'{_number(value, 2)} (receiver {_number(reader, 1)} %)'
+                                 if value else 'n/a')))
     loaded, unloaded = _value(load127, 'p50'), _value(base, 'p50')
     value = loaded / unloaded if loaded is not None and unloaded else None
     out.append(('sdo_read p50 under 127 devices @ 10 ms / unloaded', '<= 2',

@@ -6,9 +6,13 @@ the gateway deaf while it looks healthy. Here one thread opens the bus, receives
 failure (receive or send error, bus-off, an adapter that disappears, a bus that cannot be
 opened) reports the bus down once, closes it and opens it again with backoff until it works.
 
-Frames go to canopen through ``Network.notify``, the hook canopen offers custom back ends;
-the network's ``bus`` is a small proxy whose ``send`` goes through the supervisor, so a send
-on a bus that is down fails at once with :class:`BusDown` instead of reaching a dead driver.
+Frames go to the handlers subscribed through canopen's ``Network.subscribe``, called as
+canopen's ``Network.notify`` calls them; not through ``notify`` itself, which also files
+every frame's node id in a list (``NodeScanner``) that nothing here reads: a scan of up to
+127 entries per frame (see the library gaps). A frame nobody subscribed to (the echo of
+each frame sent on udp_multicast, mostly) is dropped at once. The network's ``bus`` is a small
+proxy whose ``send`` goes through the supervisor, so a send on a bus that is down fails at
+once with :class:`BusDown` instead of reaching a dead driver.
 
 The receive thread takes frames from the driver and stamps each with the host's monotonic
 clock as it takes it. An adapter's own timestamp is never used: adapters' clocks are offset
@@ -314,7 +318,6 @@ class BusSupervisor:
         # lock (one writer; reading an attribute is atomic), so a frame costs no lock.
         frames = self._frames
         subscribers = self._network.subscribers
-        notify = self._network.notify
         watcher = self._frame_watcher
         while True:
             if self._stopping:
@@ -354,8 +357,11 @@ class BusSupervisor:
                 continue
             self._received += 1
             frame_id = message.arbitration_id
+            handlers = subscribers.get(frame_id)
+            if not handlers:
+                continue  # nobody listens (an echo of ours, another master's frames)
             if not waiting:  # (a loop, not all(): this runs for every frame)
-                for handler in subscribers.get(frame_id, ()):
+                for handler in handlers:
                     if not getattr(handler, 'prompt_handler', False):
                         waiting = True
                         break
@@ -364,7 +370,8 @@ class BusSupervisor:
                 frames.put((frame_id, message.data, stamp))
                 continue
             try:
-                notify(frame_id, message.data, stamp)
+                for handler in handlers:
+                    handler(frame_id, message.data, stamp)
             except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest
                 self._handler_failed(error)
 
@@ -386,13 +393,14 @@ class BusSupervisor:
     def _dispatch(self) -> None:
         """Hand the queued frames to canopen's subscribers, in the order they were taken."""
         frames = self._frames
-        notify = self._network.notify
+        subscribers = self._network.subscribers
         while True:
             frame = frames.get()
             if frame is None:
                 return
-            try:
-                notify(*frame)
+            try:  # those subscribed now: one may have unsubscribed since the frame came
+                for handler in subscribers.get(frame[0], ()):
+                    handler(*frame)
             except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest
                 self._handler_failed(error)
             self._dispatched += 1
