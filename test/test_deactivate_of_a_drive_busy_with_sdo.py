@@ -7,13 +7,13 @@ its remaining accesses". The node runs as its own process (test_drive_safety's r
 (durand) answers, but slowly: each read of its object 0x2200 takes a second.
 """
 
-import pytest
 from lifecycle_msgs.msg import Transition
+import pytest
 from test_drive_safety import (  # noqa: F401 (rig: a fixture)
     ANSWER,
     configure_once_read,
-    managed_transition,
     MANAGED,
+    managed_transition,
     nothing_to_the_drive_after,
     QUICK_STOP,
     rig,
