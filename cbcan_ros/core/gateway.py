@@ -299,8 +299,10 @@ class Gateway:
         self._deadlines.stop()
         self.bus.stop()
 
-    def _end_drive_transfers(self) -> None:
-        """End the transfers under way with the drives; answer what waits (at shutdown).
+    def _end_drive_transfers(self, reason: str = SHUTTING_DOWN) -> None:
+        """End the transfers under way with the drives; answer what waits with ``reason``.
+
+        At shutdown, and when a managed node is deactivated.
 
         A transfer under way (a caller's long upload, a poll of a silent drive) would keep the
         drive's stop queued behind it past the stop's own wait: never sent.
@@ -309,7 +311,7 @@ class Gateway:
             channels = [channel for node_id, channel in self._channels.items()
                         if node_id in self.drives.node_ids]
         for channel in channels:
-            channel.fail_all(SHUTTING_DOWN, abort_codes.DEVICE_STATE)
+            channel.fail_all(reason, abort_codes.DEVICE_STATE)
 
     def sdo_read(self, node_id: int, index: int, subindex: int, max_size: int = 0,
                  timeout: float = 0.0) -> 'Future[SdoResult]':
