@@ -274,6 +274,9 @@ class Gateway:
         self.program.stop()
         self.boot.stop()
         self.pdo.stop()
+        # No caller's raw frame after this (a call under way ends before its next frame):
+        # one to a drive after its stop would undo it.
+        self.raw.stop()
         # The drives' stop commands go next, while the bus is open; callers' requests are
         # refused from here on, the drive service's are taken until its stops are sent, and
         # TPDOs until the drives' statuswords show them.
