@@ -274,6 +274,9 @@ class Gateway:
         self.program.stop()
         self.boot.stop()
         self.pdo.stop()
+        # No caller's raw frame after this (a call under way ends before its next frame):
+        # one to a drive after its stop would undo it.
+        self.raw.stop()
         # The drives' stop commands go next, while the bus is open; callers' requests are
         # refused from here on, the drive service's are taken until its stops are sent, and
         # TPDOs until the drives' statuswords show them.
@@ -299,8 +302,10 @@ class Gateway:
         self._deadlines.stop()
         self.bus.stop()
 
-    def _end_drive_transfers(self) -> None:
-        """End the transfers under way with the drives; answer what waits (at shutdown).
+    def _end_drive_transfers(self, reason: str = SHUTTING_DOWN) -> None:
+        """End the transfers under way with the drives; answer what waits with ``reason``.
+
+        At shutdown, and when a managed node is deactivated.
 
         A transfer under way (a caller's long upload, a poll of a silent drive) would keep the
         drive's stop queued behind it past the stop's own wait: never sent.
@@ -309,7 +314,7 @@ class Gateway:
             channels = [channel for node_id, channel in self._channels.items()
                         if node_id in self.drives.node_ids]
         for channel in channels:
-            channel.fail_all(SHUTTING_DOWN, abort_codes.DEVICE_STATE)
+            channel.fail_all(reason, abort_codes.DEVICE_STATE)
 
     def sdo_read(self, node_id: int, index: int, subindex: int, max_size: int = 0,
                  timeout: float = 0.0) -> 'Future[SdoResult]':

@@ -73,7 +73,7 @@ class DriveService:
                  sync, write_protection,
                  bus_down: Callable[[], Optional[str]] = lambda: None,
                  beat_now: Callable[[], None] = lambda: None,
-                 end_transfers: Callable[[], None] = lambda: None):
+                 end_transfers: Callable[..., None] = lambda *_: None):
         self.settings, self._network, self._monitor, self.sync = settings, network, monitor, sync
         self._pdo = pdo
         self._sdo_batch, self._beat_now = sdo_batch, beat_now
@@ -222,6 +222,10 @@ class DriveService:
         if ended is not None:  # None: shutting down, the loop ended them
             with contextlib.suppress(TimeoutError):  # stop them anyway
                 ended.result(safety.SHUTDOWN_WAIT)
+        if safety.ON_SHUTDOWN[self.settings.on_shutdown]:
+            # As at shutdown: a caller's transfer under way would hold the stop behind it
+            # past its wait, and it would never be sent.
+            self._end_transfers(reason)
         safety.stop_motion(self._drives.values(), self.settings, self._lock, reason)
 
     def command(self, node_id: int, command: str, mode: int = 0,

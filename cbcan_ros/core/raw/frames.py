@@ -228,9 +228,15 @@ class RawFrames:
             self._lost += count
 
     def stop(self) -> None:
-        """Refuse every send from now on (shutdown)."""
+        """Refuse every send from now on (shutdown); return once no frame of a call goes out.
+
+        A call under way stops before its next frame: the drives' stops, sent after this,
+        are the last word a drive gets.
+        """
         with self._lock:
             self._closing = True
+        with self._send_lock:
+            pass
 
     def refusal(self, frame: Frame, index: Optional[int] = None) -> Optional[Refusal]:
         """Return why ``frame`` may not be sent (``index``: its place in a call), or None."""
@@ -260,6 +266,13 @@ class RawFrames:
         sent = 0
         with self._send_lock:
             for frame in frames:
+                with self._lock:
+                    closing = self._closing
+                if closing:
+                    self._count(sent, len(frames) - sent)
+                    return SendResult(False, sent, f'frame {sent} {frame.describe()}: the '
+                                                   f'gateway is shutting down; {sent} of '
+                                                   f'{len(frames)} frames sent')
                 try:
                     self._supervisor.send(_message(frame))
                 except BusDown as error:
@@ -280,6 +293,9 @@ class RawFrames:
             return refused
         try:
             with self._send_lock:
+                with self._lock:
+                    if self._closing:
+                        return Refusal('shutting down', 'the gateway is shutting down')
                 self._supervisor.send(_message(frame))
         except BusDown as error:
             return Refusal('not sent', f'frame {frame.describe()}: {error}')
