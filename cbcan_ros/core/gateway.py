@@ -289,7 +289,6 @@ class Gateway:
         # silent; then no heartbeat frame after the first moment of shutdown.
         self.heartbeat.stop()
         self.sync.stop()
-        self.raw.stop()
         self.bus.restrict_sending(_closes_a_running_operation, SHUTTING_DOWN)
         self._guarding.stop()
         self.lss.close(SHUTTING_DOWN)
