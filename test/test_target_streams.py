@@ -876,7 +876,7 @@ def test_no_sync_of_the_thread_comes_between_frames_that_must_not_be_split():
         wait_until(lambda: bus.order.count('SYNC') >= 2, 5.0, 'SYNC produced')
         with producer.between_two_syncs():
             bus.order.append('first')
-            time.sleep(10 * period)  # a machine busy for five periods between the frames
+            time.sleep(10 * period)  # a machine busy for ten periods between the frames
             bus.order.append('second')
         wait_until(lambda: bus.order[-1] == 'SYNC', 5.0, 'SYNC produced again')
     finally:

@@ -369,11 +369,11 @@ class BusSupervisor:
                 self._queued += 1
                 frames.put((frame_id, message.data, stamp))
                 continue
-            try:
-                for handler in handlers:
+            for handler in handlers:
+                try:
                     handler(frame_id, message.data, stamp)
-            except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest
-                self._handler_failed(error)
+                except Exception as error:  # noqa: BLE001 - one must not deafen the rest
+                    self._handler_failed(error)
 
     def _note_sends(self, bus: can.BusABC) -> None:
         """Have every frame sent through ``bus`` told to ``on_sent`` (see watch_frames)."""
@@ -398,11 +398,12 @@ class BusSupervisor:
             frame = frames.get()
             if frame is None:
                 return
-            try:  # those subscribed now: one may have unsubscribed since the frame came
-                for handler in subscribers.get(frame[0], ()):
+            # Those subscribed now: one may have unsubscribed since the frame came.
+            for handler in subscribers.get(frame[0], ()):
+                try:
                     handler(*frame)
-            except Exception as error:  # noqa: BLE001 - one listener must not deafen the rest
-                self._handler_failed(error)
+                except Exception as error:  # noqa: BLE001 - one must not deafen the rest
+                    self._handler_failed(error)
             self._dispatched += 1
 
     def _handler_failed(self, error: Exception, what: str = 'a frame handler') -> None:

@@ -301,17 +301,15 @@ class Gateway:
         self._deadlines.stop()
         self.bus.stop()
 
-    def _end_drive_transfers(self, reason: str = SHUTTING_DOWN) -> None:
-        """End the transfers under way with the drives; answer what waits with ``reason``.
+    def _end_drive_transfers(self, reason: str, node_ids: List[int]) -> None:
+        """End the transfers under way with drives ``node_ids``; answer what waits, ``reason``.
 
-        At shutdown, and when a managed node is deactivated.
-
-        A transfer under way (a caller's long upload, a poll of a silent drive) would keep the
-        drive's stop queued behind it past the stop's own wait: never sent.
+        Before their stops, at shutdown and when a managed node is deactivated (see
+        ``DriveService._stop_motion``).
         """
         with self._lock:
-            channels = [channel for node_id, channel in self._channels.items()
-                        if node_id in self.drives.node_ids]
+            channels = [self._channels[node_id] for node_id in node_ids
+                        if node_id in self._channels]
         for channel in channels:
             channel.fail_all(reason, abort_codes.DEVICE_STATE)
 

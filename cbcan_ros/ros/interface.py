@@ -274,7 +274,8 @@ class GatewayInterface:
     def deactivate(self) -> None:
         """Answer every new call "inactive", stop the drives and publishing.
 
-        SDO calls under way finish; drive commands and moves under way are answered.
+        SDO calls under way finish, but for those with a drive that gets a stop (ended, so
+        that its stop goes first); drive commands and moves under way are answered.
         """
         self.active = False
         self.gateway.drives.pause('the gateway was deactivated')

@@ -5,7 +5,8 @@ driven by the standard lifecycle transitions (``ros2 lifecycle set /can0/cbcan c
 
 - configure: check the parameters and open the bus; the services exist but answer "inactive";
 - activate: serve the services and publish the topics;
-- deactivate: answer every new call "inactive" (calls under way finish) and stop publishing;
+- deactivate: answer every new call "inactive" (calls under way finish, but transfers with a
+  drive that gets its stop), stop the drives and stop publishing;
 - cleanup, shutdown: answer waiting calls, close the bus, take the services away.
 
 A wrong parameter fails configure with the reason in the log; fix it (``ros2 param set``)

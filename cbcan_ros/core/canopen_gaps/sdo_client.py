@@ -28,7 +28,8 @@ asks of a client):
    request on (not only after the latest one), and no segment of a block goes out after it.
 5. Frames shorter than the 8 bytes CiA 301 prescribes for SDO are ignored (canopen let
    ``struct.error`` escape for them), and aborts name the transfer's index and subindex.
-6. A transfer can be cancelled from another thread (bus down, shutdown); it ends at once.
+6. A transfer can be cancelled from another thread (bus down, shutdown); it ends at once,
+   and so does the rest of the work it is part of (a batch: ``cancels``).
    A long one (a program image) may be bounded by each answer instead (``answer_within``:
    every answer due that long after the request it answers), so that only a device that
    stops answering ends it.
@@ -118,7 +119,7 @@ class StrictSdoClient(SdoClient):
         self.ignored_frames = 0  # frames of this transfer that answered nothing we asked
 
     def transfer(self, index: int, subindex: int, deadline: float, run: Callable[[], object],
-                 answer_within: Optional[float] = None, cancels: Optional[int] = None):
+                 answer_within: Optional[float], cancels: int):
         """Run ``run()`` (canopen stream calls) as one transfer of ``index:subindex``.
 
         ``deadline`` bounds the whole transfer; with ``answer_within`` each answer is due
@@ -131,7 +132,7 @@ class StrictSdoClient(SdoClient):
         canopen raises ends the transfer with a general-error abort on the bus.
         """
         with self._lock:
-            if cancels is not None and cancels != self.cancels:
+            if cancels != self.cancels:
                 raise TransferCancelled(f'{self._cancel_reason}; not sent')
             self._mux = (index, subindex)
             self._kind = None

@@ -51,6 +51,11 @@ def powered(drive: DriveRecord, unseen: bool = False) -> bool:
     return unread and (drive.unread_state in cia402.POWERED or unseen and not drive.unread_state)
 
 
+def to_stop(drive: DriveRecord) -> bool:
+    """Return whether ``stop_motion`` sends ``drive`` its stop (its lock held)."""
+    return drive.heard and powered(drive, unseen=True)
+
+
 def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
                 reason: str) -> List[Tuple[DriveRecord, int]]:
     """Send ``on_shutdown`` by SDO to every powered drive; wait for them to take it.
@@ -65,7 +70,7 @@ def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
     for drive in records:
         with drive.sending:  # after a target or halt being sent, before any later one
             with lock:
-                if not (drive.heard and powered(drive, unseen=True)):
+                if not to_stop(drive):
                     continue
                 drive.controlword = word
                 drive.status = replace(drive.status, needs_enable=True)

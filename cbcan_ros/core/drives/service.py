@@ -66,20 +66,26 @@ class DriveService:
     ``network`` is the gateway's canopen network, ``monitor`` its heartbeat monitor, ``pdo``
     its PDO service, ``sdo_batch`` its SDO batch call, ``sync`` its SYNC producer,
     ``write_protection`` its write rules, ``bus_down()`` why the bus is down (None while it
-    is up), ``beat_now()`` sends the gateway's heartbeat at once.
+    is up), ``beat_now()`` sends the gateway's heartbeat at once, ``end_transfers(reason,
+    node_ids)`` ends the SDO transfers under way with those drives and answers the queued
+    ones with ``reason``.
     """
 
     def __init__(self, network, settings: DriveSettings, monitor, pdo, sdo_batch,
                  sync, write_protection,
                  bus_down: Callable[[], Optional[str]] = lambda: None,
                  beat_now: Callable[[], None] = lambda: None,
-                 end_transfers: Callable[..., None] = lambda *_: None):
+                 end_transfers: Callable[[str, List[int]], None] = lambda *_: None):
         self.settings, self._network, self._monitor, self.sync = settings, network, monitor, sync
         self._pdo = pdo
         self._sdo_batch, self._beat_now = sdo_batch, beat_now
-        # Ends the transfers under way with the drives (and answers those queued), so that
-        # the stops at shutdown are not queued behind them past their wait.
+        # So that the stops (at shutdown, at deactivate) are not queued behind a caller's
+        # transfer or a poll past their wait, and never sent.
         self._end_transfers = end_transfers
+        # Held by a beat of the feedback cycle, and to hold the beats: none queues a poll or
+        # a halt between the drives' transfers ended and their stops queued.
+        self._beats = threading.Lock()
+        self._beats_held = False
         self._bus_down = bus_down
         self._lock = threading.RLock()
         # Notified at every statusword taken: shutdown waits there for those of its stops.
@@ -178,10 +184,8 @@ class DriveService:
             self._closing = True
         self._cycle.stop()
         self._runner.close()
-        if safety.ON_SHUTDOWN[self.settings.on_shutdown]:
-            self._end_transfers()
-        self._show_stops(safety.stop_motion(self._drives.values(), self.settings, self._lock,
-                                            SHUTTING_DOWN))
+        self._hold_beats()  # for good: the cycle has stopped, a beat may still be under way
+        self._show_stops(self._stop_motion(SHUTTING_DOWN))
         for node_id in self._drives:
             self._network.unsubscribe(HEARTBEAT_COB_BASE + node_id, self._on_heartbeat)
 
@@ -222,11 +226,31 @@ class DriveService:
         if ended is not None:  # None: shutting down, the loop ended them
             with contextlib.suppress(TimeoutError):  # stop them anyway
                 ended.result(safety.SHUTDOWN_WAIT)
+        self._hold_beats()
+        try:
+            self._stop_motion(reason)
+        finally:
+            with self._beats:
+                self._beats_held = False
+
+    def _hold_beats(self) -> None:
+        """Return once no beat of the feedback cycle runs, and none will until released."""
+        with self._beats:
+            self._beats_held = True
+
+    def _stop_motion(self, reason: str) -> List[Tuple[DriveRecord, int]]:
+        """Send ``drives.on_shutdown`` to every powered drive, ahead of what else it waits for.
+
+        The transfers under way with those drives (a caller's long upload or batch, a poll
+        of a drive fallen silent) are ended first: the stop would wait behind them past its
+        own wait, and never be sent. A drive that gets no stop (booting, off) keeps its own.
+        """
         if safety.ON_SHUTDOWN[self.settings.on_shutdown]:
-            # As at shutdown: a caller's transfer under way would hold the stop behind it
-            # past its wait, and it would never be sent.
-            self._end_transfers(reason)
-        safety.stop_motion(self._drives.values(), self.settings, self._lock, reason)
+            with self._lock:
+                stopped = [node_id for node_id, drive in self._drives.items()
+                           if safety.to_stop(drive)]
+            self._end_transfers(reason, stopped)
+        return safety.stop_motion(self._drives.values(), self.settings, self._lock, reason)
 
     def command(self, node_id: int, command: str, mode: int = 0,
                 timeout: float = 0.0) -> 'Future[DriveResult]':
@@ -603,14 +627,18 @@ class DriveService:
     # Each beat of the feedback cycle: SDO reads of what no TPDO brings, the command timeout.
 
     def _tick(self) -> None:
-        self._cycle.expect(sum(drive.objects.tpdos_every_sync()
-                               for drive in self._drives.values() if drive.heard))
-        for drive in self._drives.values():
-            if not self._closing:
-                poll(drive, self._lock, self.read_feedback)
-            if safety.halt_if_timed_out(drive, self.settings, self._lock, lambda: self._closing):
-                with self._lock:
-                    self._tell(drive)
+        with self._beats:
+            if self._beats_held:
+                return
+            self._cycle.expect(sum(drive.objects.tpdos_every_sync()
+                                   for drive in self._drives.values() if drive.heard))
+            for drive in self._drives.values():
+                if not self._closing:
+                    poll(drive, self._lock, self.read_feedback)
+                if safety.halt_if_timed_out(drive, self.settings, self._lock,
+                                            lambda: self._closing):
+                    with self._lock:
+                        self._tell(drive)
 
     # Checks, and the way out.
 

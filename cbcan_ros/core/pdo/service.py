@@ -377,12 +377,14 @@ class PdoService:
                         again.append((not held, mapping, device.last_sent[number]))
                     elif held:
                         later.append((number, device.life, mapping))
-            # The frames the device holds go first, and no SYNC of ours between them: a SYNC
-            # between two of these would apply the older controlword of one held after one
-            # carrying them (another master's SYNC can only come after those).
-            with self._sync.between_two_syncs():
-                for _, mapping, frame in sorted(again, key=lambda each: each[0]):
-                    self._send(mapping, frame, stopping=True)
+            # The frames the device holds go first: a SYNC between two of these would apply
+            # the older controlword of one held after one carrying them; after those, one
+            # held again carries the new values. Where the gateway's thread sends SYNC, none
+            # comes between them at all.
+            if again:
+                with self._sync.between_two_syncs():
+                    for _, mapping, frame in sorted(again, key=lambda each: each[0]):
+                        self._send(mapping, frame, stopping=True)
         for number, life, mapping in later:
             self._sync.after_next_sync(lambda n=number, lf=life, m=mapping: self._send_again(
                 node_id, n, lf, m))

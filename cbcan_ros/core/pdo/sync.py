@@ -306,10 +306,10 @@ class SyncProducer:
         sent back to back would give the devices cycles of no length, and the next one on
         the grid comes soon.
         """
-        cycles = (time.monotonic() - self._grid_start) / self.period
-        cycle = math.floor(cycles)
-        send = cycles - cycle <= 0.5
-        with self._burst, self._sending:
+        with self._burst, self._sending:  # where the grid is once frames held apart are out
+            cycles = (time.monotonic() - self._grid_start) / self.period
+            cycle = math.floor(cycles)
+            send = cycles - cycle <= 0.5
             if send and self._task is task:  # not when the bus went down or shutdown began
                 try:
                     self._supervisor.send(task.frames[task.count % len(task.frames)])
