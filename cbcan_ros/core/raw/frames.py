@@ -238,6 +238,10 @@ class RawFrames:
         with self._send_lock:
             pass
 
+    def _shutting_down(self) -> bool:
+        with self._lock:
+            return self._closing
+
     def refusal(self, frame: Frame, index: Optional[int] = None) -> Optional[Refusal]:
         """Return why ``frame`` may not be sent (``index``: its place in a call), or None."""
         where = f'frame {index} ' if index is not None else 'frame '
@@ -266,9 +270,7 @@ class RawFrames:
         sent = 0
         with self._send_lock:
             for frame in frames:
-                with self._lock:
-                    closing = self._closing
-                if closing:
+                if self._shutting_down():  # it began during the call: the rest stays here
                     self._count(sent, len(frames) - sent)
                     return SendResult(False, sent, f'frame {sent} {frame.describe()}: the '
                                                    f'gateway is shutting down; {sent} of '
@@ -288,14 +290,11 @@ class RawFrames:
 
         A refusal is not counted here: the caller hands it to :meth:`refuse`.
         """
-        refused = self.refusal(frame)
-        if refused is not None:
-            return refused
         try:
-            with self._send_lock:
-                with self._lock:
-                    if self._closing:
-                        return Refusal('shutting down', 'the gateway is shutting down')
+            with self._send_lock:  # checked here: shutdown waits for this lock (stop)
+                refused = self.refusal(frame)
+                if refused is not None:
+                    return refused
                 self._supervisor.send(_message(frame))
         except BusDown as error:
             return Refusal('not sent', f'frame {frame.describe()}: {error}')
@@ -314,9 +313,7 @@ class RawFrames:
 
     def _check(self, frame: Frame) -> Tuple[str, str]:
         """Return (kind, why) when ``frame`` may not be sent, else ('', '')."""
-        with self._lock:
-            closing = self._closing
-        if closing:
+        if self._shutting_down():
             return 'shutting down', 'the gateway is shutting down'
         if frame.is_error:
             return 'error frame', 'is_error: error frames come from adapters, none is sent'
