@@ -543,6 +543,19 @@ class DriveService:
                 # that stopped by itself (quick stop options 5..8) would take it as transition
                 # 16 and run again. Only a command enables it now.
                 self._pdo.end_streams(drive.node_id)
+                if (old.state == cia402.OPERATION_ENABLED and drive.controlword
+                        & cia402.COMMAND_BITS == cia402.ENABLE_OPERATION):
+                    drive.left_by_itself = drive.controlword_sets
+            # Back in OPERATION_ENABLED though nothing of the gateway enabled it since it left
+            # by itself: a frame already on its way (one held for the next SYNC) did. It
+            # needs a fresh enable, so targets and the command timeout leave it alone: it
+            # would run on at that frame's target. Stopped as a drive found running is.
+            ran_again = (new.state == cia402.OPERATION_ENABLED
+                         and old.state != cia402.OPERATION_ENABLED
+                         and drive.left_by_itself == drive.controlword_sets
+                         and not self._closing)  # the shutdown stop is the last word
+            if ran_again:
+                drive.left_by_itself = -1
             drive.status = new
             drive.count(values)
             if cia402.STATUSWORD in values:
@@ -552,6 +565,10 @@ class DriveService:
                 self._tell(drive)
         if new.faulted and not old.faulted:
             self._runner.submit(self._read_error(drive))
+        if ran_again:
+            self._runner.submit(safety.stop_unattended(
+                drive, self._lock, 'ran again by itself after it left OPERATION_ENABLED (a '
+                'frame it held for SYNC, another master)'))
         if changed or cia402.STATUSWORD in values or cia402.VELOCITY_ACTUAL in values:
             self._wake(drive)  # a halt waits for a velocity (standstill)
 

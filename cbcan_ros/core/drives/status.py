@@ -116,6 +116,19 @@ class DriveRecord:
     # to the bus: the drive gets frames in the order they were decided. Taken before the
     # service's lock, never while holding it.
     sending: threading.Lock = field(default_factory=threading.Lock)
+    # Every assignment of ``controlword`` counts (``__setattr__``): a decision of the gateway.
+    controlword_sets: int = 0
+    # ``controlword_sets`` when the drive left OPERATION_ENABLED by itself (the gateway still
+    # commanding "enable operation"), -1 otherwise: back in OPERATION_ENABLED with no
+    # controlword decided since, the drive runs again unasked (a frame it held for SYNC with
+    # the controlword that ran it: transition 16 from QUICK_STOP_ACTIVE; another master).
+    left_by_itself: int = -1
+
+    def __setattr__(self, name, value) -> None:
+        if name == 'controlword':
+            object.__setattr__(self, 'controlword_sets',
+                               getattr(self, 'controlword_sets', 0) + 1)
+        object.__setattr__(self, name, value)
 
     def took_tpdo(self, values: Dict[int, int]) -> None:
         """Count a TPDO that brought feedback ``values`` (its lock held)."""
