@@ -94,7 +94,9 @@ class DriveRecord:
     tpdos: int = 0  # TPDOs with feedback taken: an SDO read asked after the n-th is newer
     velocities: int = 0  # velocities taken (TPDO or SDO): a halt waits for one after its read
     from_tpdo: Dict[int, Tuple[int, int]] = field(default_factory=dict)  # index: (n, value)
-    controlword: int = 0
+    # The controlword the gateway commands (``controlword``); every decision counts.
+    _controlword: int = 0
+    controlword_sets: int = 0
     halted_by: str = ''  # '', 'command' or 'timeout'
     last_target: float = 0.0
     polling: bool = False
@@ -116,19 +118,21 @@ class DriveRecord:
     # to the bus: the drive gets frames in the order they were decided. Taken before the
     # service's lock, never while holding it.
     sending: threading.Lock = field(default_factory=threading.Lock)
-    # Every assignment of ``controlword`` counts (``__setattr__``): a decision of the gateway.
-    controlword_sets: int = 0
     # ``controlword_sets`` when the drive left OPERATION_ENABLED by itself (the gateway still
     # commanding "enable operation"), -1 otherwise: back in OPERATION_ENABLED with no
     # controlword decided since, the drive runs again unasked (a frame it held for SYNC with
     # the controlword that ran it: transition 16 from QUICK_STOP_ACTIVE; another master).
     left_by_itself: int = -1
 
-    def __setattr__(self, name, value) -> None:
-        if name == 'controlword':
-            object.__setattr__(self, 'controlword_sets',
-                               getattr(self, 'controlword_sets', 0) + 1)
-        object.__setattr__(self, name, value)
+    @property
+    def controlword(self) -> int:
+        """Return the controlword the gateway commands the drive now."""
+        return self._controlword
+
+    @controlword.setter
+    def controlword(self, word: int) -> None:
+        self._controlword = word
+        self.controlword_sets += 1
 
     def took_tpdo(self, values: Dict[int, int]) -> None:
         """Count a TPDO that brought feedback ``values`` (its lock held)."""
