@@ -43,6 +43,17 @@ def the_stop(axis, since: int) -> int:
                              f'{axis.node.output()[-2000:]}') from None
 
 
+def moving_and_slow_to_read(rig):  # noqa: F811
+    """Return an active managed node's rig, its drive moving and SLOW_READ s to read."""
+    axis = rig(*MANAGED, '-p', 'sdo.timeout:=5.0', program='cbcan_lifecycle_node')
+    configure_once_read(axis)
+    managed_transition(axis, Transition.TRANSITION_ACTIVATE)
+    axis.enable_moving()
+    axis.stop_streams()
+    axis.drive.slow_read_delay = SLOW_READ
+    return axis
+
+
 def slow_uploads(axis, since: int) -> list:
     """Return the positions of the upload requests of SLOW_INDEX from ``since`` on."""
     return [number for number, message in enumerate(axis.recorder.messages(since), since)
@@ -55,12 +66,7 @@ def slow_uploads(axis, since: int) -> list:
                          ids=['deactivate', 'shutdown'])
 def test_a_managed_node_stops_a_drive_busy_with_a_batch_before_the_batch_goes_on(
         rig, transition):  # noqa: F811
-    axis = rig(*MANAGED, '-p', 'sdo.timeout:=5.0', program='cbcan_lifecycle_node')
-    configure_once_read(axis)
-    managed_transition(axis, Transition.TRANSITION_ACTIVATE)
-    axis.enable_moving()
-    axis.stop_streams()
-    axis.drive.slow_read_delay = SLOW_READ
+    axis = moving_and_slow_to_read(rig)
     reads = [SdoAccess(node_id=NODE, index=SLOW_INDEX) for _ in range(READS)]
     start = axis.recorder.mark()
     batch = axis.client(SdoBatch, 'sdo_batch').call_async(
@@ -83,12 +89,7 @@ def test_a_managed_node_stops_a_drive_busy_with_a_batch_before_the_batch_goes_on
 def test_deactivate_stops_a_drive_answering_a_slow_read(rig):  # noqa: F811
     # One read of a caller that takes the drive a second to answer: the stop, queued behind
     # it, must still reach the drive.
-    axis = rig(*MANAGED, '-p', 'sdo.timeout:=5.0', program='cbcan_lifecycle_node')
-    configure_once_read(axis)
-    managed_transition(axis, Transition.TRANSITION_ACTIVATE)
-    axis.enable_moving()
-    axis.stop_streams()
-    axis.drive.slow_read_delay = SLOW_READ
+    axis = moving_and_slow_to_read(rig)
     start = axis.recorder.mark()
     read = axis.client(SdoRead, 'sdo_read').call_async(
         SdoRead.Request(node_id=NODE, index=SLOW_INDEX, timeout=5.0))

@@ -18,6 +18,49 @@ from cbcan_ros.simulation.durand.drive_objects import QUICK_STOP_OPTION
 
 from conftest import wait_until
 
+RPDO4 = 0x500 + NODE  # controlword, target velocity (both layouts)
+
+
+def quick_stop_with_the_next_target_frame(drive, held: bool) -> None:
+    """Fire the drive's quick-stop input with its next target frame ("enable operation").
+
+    ``held``: once the drive has taken the frame (it waits there for the next SYNC); else a
+    moment before the frame arrives.
+    """
+    subscriptions = drive._network._subscriptions
+    handle = subscriptions[RPDO4]
+    armed = [True]
+
+    def intercepted(cob_id, msg):
+        fire = armed[0] and struct.unpack_from('<H', msg)[0] & 0x8F == 0x0F
+        if fire:
+            armed[0] = False
+            if not held:
+                drive.set_value(0x6040, 0, 0x0002)
+        handle(cob_id, msg)
+        if fire and held:
+            threading.Thread(target=drive.set_value, args=(0x6040, 0, 0x0002)).start()
+    subscriptions[RPDO4] = intercepted
+
+
+def left_stopped(axis, applied: Applied, start: float, frame: str) -> None:
+    """Wait for the drive to stand, out of OPERATION_ENABLED or halted; else say what it did."""
+    drive = axis.drive
+
+    def stopped() -> bool:
+        words = [e[2] for e in applied.since(start) if e[1] == 'cw']
+        return drive.velocity == 0 and (drive.drive_state != 'OPERATION_ENABLED'
+                                        or bool(words and words[-1] & HALT))
+    try:
+        wait_until(stopped, ANSWER, 'the drive stopped')
+    except AssertionError:
+        raise AssertionError(
+            f'the drive runs on at {drive.velocity} in {drive.drive_state} after it '
+            f'quick-stopped by itself and took a {frame} target frame; drive_state says '
+            f'{axis.latest().state}, nothing halts it (needs a fresh enable: targets refused, '
+            f'no command timeout); applied: {summary(applied.since(start))}:\n'
+            f'{axis.node.output()[-1500:]}') from None
+
 
 def test_a_drive_that_quick_stops_by_itself_is_not_left_running_by_a_held_target_frame(rig):  # noqa: F811
     # The drive quick-stops by itself (its quick-stop input, another master), option 6: it
@@ -28,40 +71,15 @@ def test_a_drive_that_quick_stops_by_itself_is_not_left_running_by_a_held_target
     # refuses the robot program's targets (it needs a fresh enable), so neither can they stop
     # it nor can the command timeout, which skips a drive that needs an enable.
     axis, applied = streaming(rig, 0.01, '-p', 'drives.command_timeout:=0.3')
-    drive = axis.drive
-    subscriptions = drive._network._subscriptions
-    handle = subscriptions[0x500 + NODE]  # RPDO 4: controlword, target velocity
-    armed = threading.Event()
-
-    def held_then_stopped(cob_id, msg):
-        handle(cob_id, msg)
-        if armed.is_set() and struct.unpack_from('<H', msg)[0] & 0x8F == 0x0F:
-            armed.clear()  # the quick-stop input fires while this frame waits for SYNC
-            threading.Thread(target=drive.set_value, args=(0x6040, 0, 0x0002)).start()
-    subscriptions[0x500 + NODE] = held_then_stopped
     start = time.monotonic()
-    armed.set()
+    quick_stop_with_the_next_target_frame(axis.drive, held=True)
     applied.first(lambda e: e[1] == 'state' and e[2] == 'QUICK_STOP_ACTIVE',
                   'the drive quick-stopping by itself', start)
     # The robot program sees the drive stopped and stops streaming; two SYNCs later the
     # drive has applied whatever frame it held.
     axis.stop_streams()
     syncs_pass(axis, 2, axis.recorder.mark())
-
-    def stopped() -> bool:  # not running: out of OPERATION_ENABLED, or halted, standing
-        words = [e[2] for e in applied.since(start) if e[1] == 'cw']
-        return drive.velocity == 0 and (drive.drive_state != 'OPERATION_ENABLED'
-                                        or bool(words and words[-1] & HALT))
-    try:
-        wait_until(stopped, ANSWER, 'the drive stopped')
-    except AssertionError:
-        latest = axis.latest()
-        raise AssertionError(
-            f'the drive runs on at {drive.velocity} in {drive.drive_state} after it '
-            f'quick-stopped by itself and took a held target frame; drive_state says '
-            f'{latest.state}, nothing halts it (needs a fresh enable: targets refused, no '
-            f'command timeout); applied: {summary(applied.since(start))}:\n'
-            f'{axis.node.output()[-1500:]}') from None
+    left_stopped(axis, applied, start, 'held')
 
 
 def test_a_drive_that_quick_stops_by_itself_is_not_left_running_by_a_late_target_frame(rig):  # noqa: F811
@@ -73,31 +91,9 @@ def test_a_drive_that_quick_stops_by_itself_is_not_left_running_by_a_late_target
     axis.drive.set_value(QUICK_STOP_OPTION, 0, struct.pack('<h', 6))
     applied = Applied(axis.drive)
     axis.enable_moving()
-    drive = axis.drive
-    subscriptions = drive._network._subscriptions
-    handle = subscriptions[0x500 + NODE]  # RPDO 4: controlword, target velocity
-    armed = threading.Event()
-
-    def stopped_then_taken(cob_id, msg):
-        if armed.is_set() and struct.unpack_from('<H', msg)[0] & 0x8F == 0x0F:
-            armed.clear()
-            drive.set_value(0x6040, 0, 0x0002)  # the quick-stop input, a moment before
-        handle(cob_id, msg)
-    subscriptions[0x500 + NODE] = stopped_then_taken
     start = time.monotonic()
-    armed.set()
+    quick_stop_with_the_next_target_frame(axis.drive, held=False)
     applied.first(lambda e: e[1] == 'state' and e[2] == 'QUICK_STOP_ACTIVE',
                   'the drive quick-stopping by itself', start)
     axis.stop_streams()
-
-    def stopped() -> bool:
-        words = [e[2] for e in applied.since(start) if e[1] == 'cw']
-        return drive.velocity == 0 and (drive.drive_state != 'OPERATION_ENABLED'
-                                        or bool(words and words[-1] & HALT))
-    try:
-        wait_until(stopped, ANSWER, 'the drive stopped')
-    except AssertionError:
-        raise AssertionError(
-            f'the drive runs on at {drive.velocity} in {drive.drive_state} after it '
-            f'quick-stopped by itself and took a late target frame; drive_state says '
-            f'{axis.latest().state}; applied: {summary(applied.since(start))}') from None
+    left_stopped(axis, applied, start, 'late')

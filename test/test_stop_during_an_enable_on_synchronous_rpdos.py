@@ -14,10 +14,8 @@ from lifecycle_msgs.msg import Transition
 import pytest
 from test_drive_safety import (  # noqa: F401 (rig: a fixture)
     ANSWER,
-    configure_once_read,
     controlword_of,
     CSV,
-    MANAGED,
     managed_transition,
     rig,
     stop_with,
@@ -25,7 +23,7 @@ from test_drive_safety import (  # noqa: F401 (rig: a fixture)
 from test_drive_stops_with_synchronous_rpdos import (
     Applied,
     summary,
-    synchronous_vendor,
+    synchronous_axis,
     syncs_pass,
 )
 
@@ -37,13 +35,8 @@ from conftest import wait_until
 @pytest.mark.parametrize('how', ['SIGINT', 'deactivate'])
 def test_a_stop_during_an_enable_on_synchronous_rpdos_is_not_undone(rig, how):  # noqa: F811
     managed = how == 'deactivate'
-    axis = rig(*(MANAGED if managed else ('-p', 'drives.command_timeout:=0.0')),
-               '-p', 'sync.period:=0.01', pdos=synchronous_vendor(),
-               program='cbcan_lifecycle_node' if managed else 'cbcan_node')
-    if managed:
-        configure_once_read(axis)
-        managed_transition(axis, Transition.TRANSITION_ACTIVATE)
-    axis.wait_state('SWITCH_ON_DISABLED')
+    axis = synchronous_axis(rig, 0.01, *(() if managed else ('-p', 'drives.command_timeout:=0.0')),
+                            managed=managed)
     axis.nmt_start()
     applied = Applied(axis.drive)
     client = axis.client(DriveCommand, 'drive_command')
