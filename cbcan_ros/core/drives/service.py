@@ -545,17 +545,17 @@ class DriveService:
                 self._pdo.end_streams(drive.node_id)
                 if (old.state == cia402.OPERATION_ENABLED and drive.controlword
                         & cia402.COMMAND_BITS == cia402.ENABLE_OPERATION):
-                    drive.left_by_itself = drive.controlword_sets
+                    drive.left_by_itself = True
             # Back in OPERATION_ENABLED though nothing of the gateway enabled it since it left
             # by itself: a frame already on its way (one held for the next SYNC) did. It
             # needs a fresh enable, so targets and the command timeout leave it alone: it
             # would run on at that frame's target. Stopped as a drive found running is.
             ran_again = (new.state == cia402.OPERATION_ENABLED
                          and old.state != cia402.OPERATION_ENABLED
-                         and drive.left_by_itself == drive.controlword_sets
+                         and drive.left_by_itself
                          and not self._closing)  # the shutdown stop is the last word
             if ran_again:
-                drive.left_by_itself = -1
+                drive.left_by_itself = False
             drive.status = new
             drive.count(values)
             if cia402.STATUSWORD in values:

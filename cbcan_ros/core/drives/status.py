@@ -94,9 +94,7 @@ class DriveRecord:
     tpdos: int = 0  # TPDOs with feedback taken: an SDO read asked after the n-th is newer
     velocities: int = 0  # velocities taken (TPDO or SDO): a halt waits for one after its read
     from_tpdo: Dict[int, Tuple[int, int]] = field(default_factory=dict)  # index: (n, value)
-    # The controlword the gateway commands (``controlword``); every decision counts.
-    _controlword: int = 0
-    controlword_sets: int = 0
+    _controlword: int = 0  # the controlword the gateway commands (``controlword``)
     halted_by: str = ''  # '', 'command' or 'timeout'
     last_target: float = 0.0
     polling: bool = False
@@ -118,11 +116,11 @@ class DriveRecord:
     # to the bus: the drive gets frames in the order they were decided. Taken before the
     # service's lock, never while holding it.
     sending: threading.Lock = field(default_factory=threading.Lock)
-    # ``controlword_sets`` when the drive left OPERATION_ENABLED by itself (the gateway still
-    # commanding "enable operation"), -1 otherwise: back in OPERATION_ENABLED with no
-    # controlword decided since, the drive runs again unasked (a frame it held for SYNC with
-    # the controlword that ran it: transition 16 from QUICK_STOP_ACTIVE; another master).
-    left_by_itself: int = -1
+    # The drive left OPERATION_ENABLED by itself (the gateway still commanding "enable
+    # operation") and the gateway decided no controlword since: back in OPERATION_ENABLED,
+    # it runs again unasked (a frame it held for SYNC with the controlword that ran it:
+    # transition 16 from QUICK_STOP_ACTIVE; another master).
+    left_by_itself: bool = False
 
     @property
     def controlword(self) -> int:
@@ -132,7 +130,7 @@ class DriveRecord:
     @controlword.setter
     def controlword(self, word: int) -> None:
         self._controlword = word
-        self.controlword_sets += 1
+        self.left_by_itself = False  # a decision of the gateway's: what follows is asked
 
     def took_tpdo(self, values: Dict[int, int]) -> None:
         """Count a TPDO that brought feedback ``values`` (its lock held)."""
