@@ -2,8 +2,7 @@
 
 The node runs as its own process (test_drive_safety's rig) with synchronous RPDOs
 (the combined layout, synchronous) and a slow SYNC, so the resume of a halted drive waits
-long for the
-SYNC that applies its release. The signal comes meanwhile: the resume is answered once, the
+long for the SYNC that applies its release. The signal comes meanwhile: the resume is answered once, the
 drive is quick-stopped and nothing commanding it follows the stop; the drive ends standing.
 """
 
@@ -21,6 +20,7 @@ from test_drive_safety import (  # noqa: F401 (rig: a fixture)
     stop_with,
 )
 
+from cbcan_ros.core.drives.cia402 import HALT
 from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
 
 from conftest import wait_until
@@ -37,10 +37,16 @@ def test_a_signal_while_a_resume_waits_for_its_sync(rig):  # noqa: F811
     assert halted.success, halted.message
     answers = []
     client = axis.client(DriveCommand, 'drive_command')
+    before = axis.recorder.mark()
     future = client.call_async(DriveCommand.Request(node_id=NODE, command='resume',
                                                     timeout=10.0))
     future.add_done_callback(lambda done: answers.append(done.result()))
-    time.sleep(SYNC_PERIOD / 2)  # the resume's frame is out; its SYNCs are not
+    # The resume's frame is out: the SYNC that applies it is most of a period away (it
+    # waits for two), so the signal below comes while the resume waits, however slow the
+    # machine is to wake this thread.
+    axis.recorder.first(
+        lambda m: m.arbitration_id == 0x200 + NODE and not m.data[1] & (HALT >> 8),
+        "the resume's controlword without halt", before)
     assert not answers, answers
     since = axis.recorder.mark()
     stop_with(axis, signal.SIGINT)
