@@ -2,8 +2,9 @@
 
 The node runs as its own process (test_drive_safety's rig) with synchronous RPDOs
 (the combined layout, synchronous) and a slow SYNC, so the resume of a halted drive waits
-long for the SYNC that applies its release. The signal comes meanwhile: the resume is answered once, the
-drive is quick-stopped and nothing commanding it follows the stop; the drive ends standing.
+long for the SYNC that applies its release. The signal comes meanwhile: the resume is
+answered once, the drive is quick-stopped and nothing commanding it follows the stop; the
+drive ends standing.
 """
 
 import signal
