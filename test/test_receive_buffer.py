@@ -15,7 +15,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 import pytest
 from test_diagnostics import DiagnosticsRecorder
 
-from cbcan_ros.core.receive_buffer import RECEIVE_BUFFER
+from cbcan_ros.core.python_can_gaps.receive_buffer import RECEIVE_BUFFER
 
 from node_process import private_bus
 

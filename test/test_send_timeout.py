@@ -15,7 +15,7 @@ import canopen
 import pytest
 
 from cbcan_ros.core.bus import BusSupervisor, prompt, SEND_TIMEOUT
-from cbcan_ros.core.send_timeout import kernel_send_timeout
+from cbcan_ros.core.python_can_gaps.send_timeout import kernel_send_timeout
 
 from conftest import wait_until
 from node_process import private_bus
@@ -25,7 +25,8 @@ FRAMES = 5
 TIMEVAL = struct.Struct('@ll')
 
 
-def _kernel_bound(sock: socket.socket) -> float:
+def kernel_bound(sock: socket.socket) -> float:
+    """Return the send timeout the kernel holds for ``sock``, in seconds."""
     seconds, microseconds = TIMEVAL.unpack(
         sock.getsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, TIMEVAL.size))
     return seconds + microseconds / 1_000_000
@@ -56,7 +57,7 @@ def test_the_supervisor_sends_on_udp_multicast_without_putting_its_socket_in_tim
         assert supervisor.status.frames_sent == FRAMES
         sock = opened[0]._multicast._socket
         assert sock.gettimeout() is None  # blocking mode: no poll() before sends and receives
-        assert _kernel_bound(sock) == pytest.approx(SEND_TIMEOUT)
+        assert kernel_bound(sock) == pytest.approx(SEND_TIMEOUT)
     finally:
         supervisor.stop()
 

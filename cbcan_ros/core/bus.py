@@ -37,7 +37,7 @@ from typing import Callable, List, Optional
 
 import can
 
-from .send_timeout import kernel_send_timeout
+from .python_can_gaps.send_timeout import kernel_send_timeout
 
 LOGGER = logging.getLogger(__name__)
 

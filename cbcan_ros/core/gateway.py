@@ -34,8 +34,9 @@ from .pdo.service import PdoService
 from .pdo.sync import SyncProducer
 from .program.download import ProgramSettings
 from .program.service import ProgramService
+from .python_can_gaps.own_frames import drop_own_frames
+from .python_can_gaps.receive_buffer import deepen_receive_buffer
 from .raw.frames import canopen_ids, echoes, RawFrames, RawSettings
-from .receive_buffer import deepen_receive_buffer
 from .sdo import abort_codes
 from .sdo.channel import SdoChannel, SdoStatistics
 from .sdo.request_queue import answer, Deadlines, resolved
@@ -425,6 +426,7 @@ class Gateway:
             options['bitrate'] = self.config.bitrate
         bus = can.Bus(interface=self.config.interface, channel=self.config.channel, **options)
         deepen_receive_buffer(bus)
+        drop_own_frames(bus)
         return bus
 
     def _on_bus_change(self, status: BusStatus) -> None:

@@ -72,8 +72,9 @@ class Diagnostics:
       meaning), WARN while not heard or when the last set-point of its last stream of PP
       targets was missed (shown until a later stream's is reached), else OK with its state.
     - ``<node>: SYNC`` while the gateway produces SYNC: ERROR while it is not on the bus,
-      with the period configured and the one measured between SYNCs heard on the bus (an
-      adapter that does not echo its own frames shows none).
+      with the period configured and the one measured: between the SYNCs the gateway's
+      thread sent, where it sends them, else between those heard on the bus (an adapter
+      that does not echo its own frames shows none).
     """
 
     def __init__(self, node: Node, gateway: Gateway, joints: Dict[int, Joint]):

@@ -60,13 +60,15 @@ class _ThreadTask:
     """SYNC sent by the producer's thread on the grid from the task's start (see the module).
 
     ``sent``: the last grid cycle whose SYNC was sent or skipped (-1: none yet); ``count``:
-    SYNCs sent, which picks the counter's frame; ``sending``: held while the thread sends one.
+    SYNCs sent, which picks the counter's frame; ``sent_at``: when the last one went out
+    (monotonic; None: none yet); ``sending``: held while the thread sends one.
     """
 
     def __init__(self, frames: List[can.Message], sending: threading.Lock):
         self.frames = frames
         self.sent = -1
         self.count = 0
+        self.sent_at: Optional[float] = None
         self._sending = sending
 
     def stop(self) -> None:
@@ -87,7 +89,9 @@ class SyncStatus:
     running: bool                       # the periodic task is on the bus now
     starts: int                         # times it was started (1 + reopens of the bus)
     heard: int                          # SYNC frames received (an echo of ours, or another's)
-    measured_period: Optional[float]    # mean interval between SYNCs heard, seconds
+    # Mean interval between the SYNCs the gateway's thread sent (where it sends them), else
+    # between those heard, seconds.
+    measured_period: Optional[float]
     measured_jitter: Optional[float]    # largest deviation of an interval from the period
 
 
@@ -289,18 +293,29 @@ class SyncProducer:
                 if before == due:
                     callbacks, self._before_sync = callbacks + self._before_sync, []
             if sync == due:
-                cycle, sent = self._send_sync(task)
+                cycle, sent_at = self._send_sync(task)
                 with self._lock:  # a frame held back until now goes out right after it
                     if self._task is task:
                         task.sent = cycle
                         # Not after a SYNC skipped: a frame would reach the device with the
                         # ones of the cycle before, which the time grid takes as applied.
-                        if sent:
+                        if sent_at is not None:
+                            self._note_sent(task, sent_at)
                             callbacks, self._after_sync = callbacks + self._after_sync, []
             _run_all(callbacks)
 
-    def _send_sync(self, task: _ThreadTask) -> Tuple[int, bool]:
-        """Send the SYNC of the grid cycle due now; return the cycle and whether it went out.
+    def _note_sent(self, task: _ThreadTask, stamp: float) -> None:
+        """Measure the period between the thread's SYNCs (lock held).
+
+        Sent, not heard: most adapters do not hand a process its own frames, and the host's
+        clock when each went out is what the devices' cycle follows.
+        """
+        if task.sent_at is not None:
+            self._intervals.append(stamp - task.sent_at)
+        task.sent_at = stamp
+
+    def _send_sync(self, task: _ThreadTask) -> Tuple[int, Optional[float]]:
+        """Send the SYNC of the grid cycle due now; return the cycle and when it went out.
 
         One later than half a period is skipped rather than sent late: after a stall, SYNCs
         sent back to back would give the devices cycles of no length, and the next one on
@@ -314,19 +329,21 @@ class SyncProducer:
                 try:
                     self._supervisor.send(task.frames[task.count % len(task.frames)])
                     task.count += 1
-                    return cycle, True
+                    return cycle, time.monotonic()
                 except BusDown:
                     pass  # the bus thread reports it down; this task ends then
-        return cycle, False
+        return cycle, None
 
     @prompt
     def _on_sync_heard(self, _can_id: int, _data: bytearray, timestamp: float) -> None:
         with self._lock:
             self._heard += 1
             previous, self._last_heard = self._last_heard, timestamp
+            if isinstance(self._task, _ThreadTask):
+                return  # its period is measured where it sends (_note_sent)
             if previous is not None:
                 self._intervals.append(timestamp - previous)
-            if self._task is not None and not isinstance(self._task, _ThreadTask):
+            if self._task is not None:
                 self._follow_heard(timestamp, previous)
 
     def _follow_heard(self, stamp: float, previous: Optional[float]) -> None:

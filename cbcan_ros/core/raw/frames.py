@@ -8,7 +8,8 @@ The adapter has one owner, the gateway, so their programs receive and send throu
   CANopen sees it; frames that pass ``raw.filters`` go to the listeners, in bus order. A
   listener runs on the receive thread, so it only notes the frame (the ROS layer queues it
   for a publishing thread of its own). Frames the gateway sent itself are not handed back,
-  also on buses that echo every frame to its sender (udp_multicast).
+  also on buses that echo every frame to its sender (udp_multicast where the kernel cannot
+  drop them, ``own_frames.py``; a bus opened with ``receive_own_messages``).
 - sent: :meth:`RawFrames.send` checks every frame of a call before the first goes out (one
   refused, none sent), then sends them in order; an adapter that fails midway stops there
   and the answer says how many went out.
@@ -29,6 +30,7 @@ from typing import AbstractSet, Callable, Deque, Dict, FrozenSet, List, Optional
 import can
 
 from ..bus import BusDown, BusSupervisor
+from ..python_can_gaps import own_frames
 from ..sdo.write_protection import WriteProtection
 from .filters import exact_entry, EXTENDED_MASK, FrameFilters, STANDARD_MASK
 
@@ -44,8 +46,9 @@ ECHO_WINDOW = 2.0
 ECHO_SWEEP = 1000  # sends between sweeps for echoes that never came
 
 # Interfaces that hand a process its own frames back (udp_multicast does so even when told
-# not to), and the python-can option that asks others to.
-ECHOING_INTERFACES = frozenset({'udp_multicast'})
+# not to, unless the kernel drops them for it: own_frames.py), and the python-can option
+# that asks others to.
+ECHOING_INTERFACES = frozenset() if own_frames.SUPPORTED else frozenset({'udp_multicast'})
 OWN_MESSAGES_OPTION = 'receive_own_messages'
 
 # The default COB-ID bases of the four TPDOs and RPDOs of a device (CiA 301).

@@ -40,7 +40,7 @@ from durand.services.nmt import StateEnum
 from durand.services.sdo.server import SDODomainAbort, TransferState
 
 from ...core import nmt
-from ...core.receive_buffer import deepen_receive_buffer
+from ...core.python_can_gaps.receive_buffer import deepen_receive_buffer
 from .dictionary import (
     ABORT_LENGTH_TOO_HIGH,
     add_objects,

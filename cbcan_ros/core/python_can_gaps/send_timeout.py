@@ -26,13 +26,9 @@ from typing import Optional
 
 import can
 
+from .own_frames import sending_socket
+
 LOGGER = logging.getLogger(__name__)
-
-
-def _multicast_socket(bus: can.BusABC) -> Optional[socket.socket]:
-    # python-can 4.6.1: UdpMulticastBus._multicast._socket (private), as receive_buffer.py.
-    found = getattr(getattr(bus, '_multicast', None), '_socket', None)
-    return found if isinstance(found, socket.socket) else None
 
 
 def kernel_send_timeout(bus: can.BusABC, timeout: float) -> Optional[float]:
@@ -42,7 +38,7 @@ def kernel_send_timeout(bus: can.BusABC, timeout: float) -> Optional[float]:
     returned, so python-can never puts the socket into timeout mode; any other bus (or one
     whose socket refuses the option) gets ``timeout`` back, for python-can to apply per call.
     """
-    sock = _multicast_socket(bus)
+    sock = sending_socket(bus)
     if sock is None:
         return timeout
     seconds = int(timeout)
