@@ -33,6 +33,7 @@ from bench_util import (
     DOMAIN_DATA,
     DOMAIN_INDEX,
     DOMAIN_SIZE,
+    dropped_between,
     exit_on_sigterm,
     import_retrying,
     latency,
@@ -271,8 +272,7 @@ class Suite:
         measure()
         if self.hub:
             after = self.ask({'op': 'udp_drops'})
-            self.udp_drops[name] = {key: after[key] - before[key] for key in before
-                                    if before[key] is not None and after.get(key) is not None}
+            self.udp_drops[name] = dropped_between(before, after)
 
     # ------------------------------------------------------------ helpers
 
@@ -533,9 +533,8 @@ class Suite:
                 self._call_read(1, failures)
                 times.append(time.perf_counter() - start)
             drops_after = self.ask({'op': 'udp_drops'})
-            dropped = {f'calls_drops_{key}': drops_after[key] - drops[key]
-                       for key in drops if drops[key] is not None
-                       and drops_after.get(key) is not None}
+            dropped = {f'calls_drops_{key}': count
+                       for key, count in dropped_between(drops, drops_after).items()}
             self.row(f'load_{name}', latency(
                 times, right=calls - len(failures), calls=calls, errors=failures[:3],
                 nodes=nodes, period_ms=period, **cpu, **dropped))

@@ -227,7 +227,8 @@ def markdown(rows: Dict[str, Dict[str, dict]], problems: List[str], machine: Dic
     drops = rows['udp_multicast'].get('udp_drops')
     if drops:
         lines += ['udp_multicast frames dropped for a full socket receive buffer, per phase '
-                  '(node, device process, client; /proc/net/udp), and UDP datagrams the whole '
+                  '(node, device process, client; /proc/net/udp; the node capped by the '
+                  "machine's count), and UDP datagrams the whole "
                   'machine dropped (/proc/net/snmp, DDS and other work included): '
                   + '; '.join(f'{phase} {counts.get("node", "?")}, {counts.get("device", "?")}'
                               f', {counts.get("client", "?")} ({counts.get("system", "?")})'
@@ -247,7 +248,9 @@ def markdown(rows: Dict[str, Dict[str, dict]], problems: List[str], machine: Dic
         lines.append(f'| {number} | {title} | ' + ' | '.join(cells) + f' | {right} |')
     lines += ['', '**Load** (udp_multicast only). CPU in % of one core from /proc/<pid>/stat '
               'utime+stime over the window, while nothing calls the node; "dropped" = frames '
-              'its socket dropped for a full receive buffer (/proc/net/udp), i.e. frames it '
+              'its socket dropped for a full receive buffer (/proc/net/udp, capped by the '
+              "machine's count: the socket also counts the echoes of its own frames its "
+              'filter drops), i.e. frames it '
               'never paid for; then `sdo_read` of node 1 under the same load:', '',
               '| load | frames/s on the bus | node CPU | node dropped | node RSS | '
               '`sdo_read` p50 | p99 | right | dropped during the calls (node; device) | '

@@ -38,6 +38,7 @@ import uuid
 from bench_report import machine_info, write_report
 from bench_util import (
     BLOCK_DEVICE,
+    dropped_between,
     MARK,
     OUTPUT,
     proc_cpu_seconds,
@@ -313,9 +314,8 @@ class Run:
             result = {f'cpu_{name}': (after[name] - before[name]) / elapsed * 100
                       if after[name] is not None and before[name] is not None else None
                       for name in pids}
-            result.update({f'drops_{name}': dropped_after[name] - dropped[name]
-                           if dropped_after[name] is not None and dropped[name] is not None
-                           else None for name in dropped})
+            gained = dropped_between(dropped, dropped_after)
+            result.update({f'drops_{name}': gained.get(name) for name in dropped})
             sent = after_stats['sent'] - before_stats['sent']
             result['frames_per_s'] = sent / (after_stats['time'] - before_stats['time'])
             result['late_cycles'] = after_stats['late_cycles'] - before_stats['late_cycles']

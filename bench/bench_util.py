@@ -171,6 +171,21 @@ def udp_receive_drops() -> Optional[int]:
         return None
 
 
+def dropped_between(before: Dict[str, Optional[int]],
+                    after: Dict[str, Optional[int]]) -> Dict[str, int]:
+    """Return the datagrams each counter of ``udp_drops`` gained from ``before`` to ``after``.
+
+    The node's socket also counts the echoes of its own frames that its kernel filter drops
+    (cbcan_ros/core/python_can_gaps/own_frames.py): only the machine's count of datagrams
+    dropped for a full buffer (``system``) bounds what it lost, so its count is capped there.
+    """
+    gained = {key: after[key] - before[key] for key in before
+              if before[key] is not None and after.get(key) is not None}
+    if 'node' in gained and 'system' in gained:
+        gained['node'] = min(gained['node'], gained['system'])
+    return gained
+
+
 def proc_udp_drops(pid: int, port: int) -> Optional[int]:
     """Return the datagrams dropped so far by the UDP sockets of ``pid`` bound to ``port``.
 
