@@ -4,14 +4,24 @@ python-can's udp_multicast bus hands a process every frame it sent (``own_frames
 an echo that wakes the receive thread for nothing. The gateway opens its bus with a socket of
 its own for sending and a kernel filter that drops what that socket sent: the frames still
 reach the devices (other processes, other sockets), frames from others still reach the
-gateway, and its sends are still bounded by the kernel's send timeout.
+gateway, also another host's from a port of the same number, and its sends are still bounded
+by the kernel's send timeout. Where the filter cannot be had, the bus echoes as before and
+``~/from_can_bus`` still leaves the gateway's own frames out.
 """
 
+import errno
 import logging
+import os
+import resource
+import socket
+import struct
+import time
 
 import can
+from can.interfaces.udp_multicast.utils import pack_message
 import canopen
 import pytest
+from test_raw_frames import FrameRecorder
 from test_send_timeout import kernel_bound
 
 from cbcan_ros.core.bus import BusSupervisor, prompt, SEND_TIMEOUT
@@ -118,3 +128,83 @@ def test_the_sending_socket_is_closed_with_the_bus(group):
     assert sock.fileno() == -1
     with pytest.raises(OSError):
         sock.sendto(b'x', (address, port))
+
+
+def _from_another_host(source: str, source_port: int, group: str, port: int,
+                       message: can.Message) -> bytes:
+    """Return an IPv4 datagram of ``message`` as another host would send it to the group."""
+    payload = pack_message(message)
+    udp = struct.pack('!HHHH', source_port, port, 8 + len(payload), 0) + payload
+    return struct.pack('!BBHHHBBH4s4s', 0x45, 0, 20 + len(udp), 0, 0, 1, socket.IPPROTO_UDP,
+                       0, socket.inet_aton(source), socket.inet_aton(group)) + udp
+
+
+def test_another_host_sending_from_the_same_port_number_is_heard(group):
+    address, port, _ = group
+    bus = can.Bus(interface='udp_multicast', channel=address, port=port)
+    try:
+        raw = socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_RAW)
+    except PermissionError:
+        bus.shutdown()
+        pytest.skip('a raw socket (root or CAP_NET_RAW) is needed to send as another host')
+    try:
+        assert drop_own_frames(bus)
+        own_address, own_port = own_frames.sending_socket(bus).getsockname()[:2]
+        for can_id, source in ((0x7F0, '10.20.30.40'), (0x7F1, own_address)):
+            raw.sendto(_from_another_host(source, own_port, address, port, can.Message(
+                arbitration_id=can_id, is_extended_id=False)), (address, 0))
+        bus.send(can.Message(arbitration_id=0x7F2, is_extended_id=False))
+        heard = []
+        deadline = time.monotonic() + 2.0  # all three come within milliseconds
+        while time.monotonic() < deadline:
+            message = bus.recv(0.1)
+            if message is not None:
+                heard.append(message.arbitration_id)
+        # Another host's frame from that port number; not one with this socket's address
+        # and port, nor the frame this bus sent.
+        assert heard == [0x7F0], [hex(can_id) for can_id in heard]
+    finally:
+        raw.close()
+        bus.shutdown()
+
+
+def test_a_process_out_of_file_descriptors_keeps_the_bus_echoing_with_a_warning(group,
+                                                                                caplog):
+    address, port, _ = group
+    bus = can.Bus(interface='udp_multicast', channel=address, port=port)
+    try:
+        # The lowest free descriptor as the limit: the sending socket is the one too many.
+        free = os.dup(0)
+        os.close(free)
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (free, hard))
+        try:
+            with caplog.at_level(logging.WARNING):
+                dropped = drop_own_frames(bus)
+        finally:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+        assert dropped is False
+        assert os.strerror(errno.EMFILE) in caplog.text, caplog.text
+        bus.send(can.Message(arbitration_id=OWN, is_extended_id=False, data=[2]))
+        echo = bus.recv(WAIT)
+        assert echo is not None and echo.arbitration_id == OWN
+    finally:
+        bus.shutdown()
+
+
+def test_where_the_filter_is_refused_from_can_bus_still_leaves_the_gateway_s_frames_out(
+        make_gateway, monkeypatch, group):
+    address, port, other = group
+    monkeypatch.setattr(own_frames, 'SO_ATTACH_FILTER', 0xDEAD)  # an option no kernel knows
+    harness = make_gateway(can__interface='udp_multicast', can__channel=address,
+                           can__options=[f'port={port}'], simulation__devices=None,
+                           heartbeat__node_id=100, heartbeat__period=0.05, sync__period=0.05,
+                           raw__filters=['0:0'])
+    recorder = FrameRecorder(harness.client_node, '/cbcan/from_can_bus')
+    wait_until(lambda: harness.node.gateway.bus_status.frames_received > 20, WAIT,
+               "the gateway's heartbeats and SYNCs coming back to it")
+    # Another process's frame, published: everything before it has been through the bridge.
+    other.send(can.Message(arbitration_id=OTHER, is_extended_id=False, data=[9]))
+    wait_until(lambda: any(frame.id == OTHER for frame in recorder.frames), WAIT,
+               "another process's frame on from_can_bus")
+    assert [frame.id for frame in recorder.frames] == [OTHER]

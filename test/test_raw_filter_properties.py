@@ -158,7 +158,8 @@ class FakePdo:
 def bridge(send_allow, read_only=False):
     bus = FakeBus()
     raw = RawFrames(bus, RawSettings(send_allow=parse_filters(send_allow, errors=False)),
-                    WriteProtection(read_only), lambda: canopen_ids(FakePdo()), False)
+                    WriteProtection(read_only), lambda: canopen_ids(FakePdo()),
+                    lambda: False)
     return raw, bus
 
 

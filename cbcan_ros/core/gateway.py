@@ -212,9 +212,12 @@ class Gateway:
         self.boot.hold_while(self.program.refusal)
         self.program.refuse_when(self.boot.booting)
         self.program.add_listener(self.boot.program_changed)
+        echoing = echoes(config.interface, config.bus_options)
+        # Set at every open of the bus: whether the kernel drops the frames the gateway sent.
+        self._own_frames_dropped = False
         self.raw = RawFrames(self.bus, config.raw, config.write_protection,
                              lambda: canopen_ids(self.pdo),
-                             echoes(config.interface, config.bus_options))
+                             lambda: echoing and not self._own_frames_dropped)
         self.lss = LssMaster(
             self.network, self._deadlines,
             probe_wait(config.interface, config.bitrate, config.lss_probe_timeout),
@@ -426,7 +429,7 @@ class Gateway:
             options['bitrate'] = self.config.bitrate
         bus = can.Bus(interface=self.config.interface, channel=self.config.channel, **options)
         deepen_receive_buffer(bus)
-        drop_own_frames(bus)
+        self._own_frames_dropped = drop_own_frames(bus)
         return bus
 
     def _on_bus_change(self, status: BusStatus) -> None:

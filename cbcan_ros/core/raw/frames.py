@@ -8,8 +8,8 @@ The adapter has one owner, the gateway, so their programs receive and send throu
   CANopen sees it; frames that pass ``raw.filters`` go to the listeners, in bus order. A
   listener runs on the receive thread, so it only notes the frame (the ROS layer queues it
   for a publishing thread of its own). Frames the gateway sent itself are not handed back,
-  also on buses that echo every frame to its sender (udp_multicast where the kernel cannot
-  drop them, ``own_frames.py``; a bus opened with ``receive_own_messages``).
+  also on buses that echo every frame to its sender (udp_multicast where the kernel could
+  not drop them, ``own_frames.py``; a bus opened with ``receive_own_messages``).
 - sent: :meth:`RawFrames.send` checks every frame of a call before the first goes out (one
   refused, none sent), then sends them in order; an adapter that fails midway stops there
   and the answer says how many went out.
@@ -30,7 +30,6 @@ from typing import AbstractSet, Callable, Deque, Dict, FrozenSet, List, Optional
 import can
 
 from ..bus import BusDown, BusSupervisor
-from ..python_can_gaps import own_frames
 from ..sdo.write_protection import WriteProtection
 from .filters import exact_entry, EXTENDED_MASK, FrameFilters, STANDARD_MASK
 
@@ -46,9 +45,9 @@ ECHO_WINDOW = 2.0
 ECHO_SWEEP = 1000  # sends between sweeps for echoes that never came
 
 # Interfaces that hand a process its own frames back (udp_multicast does so even when told
-# not to, unless the kernel drops them for it: own_frames.py), and the python-can option
-# that asks others to.
-ECHOING_INTERFACES = frozenset() if own_frames.SUPPORTED else frozenset({'udp_multicast'})
+# not to; the gateway has the kernel drop them where it can: own_frames.py), and the
+# python-can option that asks others to.
+ECHOING_INTERFACES = frozenset({'udp_multicast'})
 OWN_MESSAGES_OPTION = 'receive_own_messages'
 
 # The default COB-ID bases of the four TPDOs and RPDOs of a device (CiA 301).
@@ -62,7 +61,7 @@ FIXED_CANOPEN_IDS = frozenset({0x000, 0x080, 0x100, 0x7E4, 0x7E5}.union(
 
 
 def echoes(interface: str, options: Dict[str, object]) -> bool:
-    """Return whether a bus hands the gateway the frames it sent itself."""
+    """Return whether a bus, as python-can opens it, hands the gateway the frames it sent."""
     return interface in ECHOING_INTERFACES or bool(options.get(OWN_MESSAGES_OPTION))
 
 
@@ -183,17 +182,19 @@ class RawFrames:
     """The raw bridge of one gateway: received frames to listeners, frames sent on request.
 
     ``canopen_ids()`` returns the ids no wide ``raw.send_allow`` entry opens (see
-    :func:`canopen_ids`). ``echoing``: whether the bus hands the gateway its own frames.
+    :func:`canopen_ids`). ``echoing()``: whether the bus open now hands the gateway its own
+    frames (it may change when the bus is opened again).
     """
 
     def __init__(self, supervisor: BusSupervisor, settings: RawSettings,
                  protection: WriteProtection, canopen_ids: Callable[[], AbstractSet[int]],
-                 echoing: bool):
+                 echoing: Callable[[], bool]):
         self.settings = settings
         self._supervisor = supervisor
         self._protection = protection
         self._canopen_ids = canopen_ids
-        self._echo = _EchoFilter() if echoing and not settings.filters.empty else None
+        self._echoing = echoing
+        self._echo = _EchoFilter()
         self._listeners: List[Callable[[can.Message, float], None]] = []
         self._send_lock = threading.Lock()  # one call's frames leave together, in order
         self._lock = threading.Lock()
@@ -204,8 +205,7 @@ class RawFrames:
         self._lost = 0
         self._logged: set = set()
         if not settings.filters.empty:
-            supervisor.watch_frames(self._on_frame,
-                                    self._echo.sent if self._echo is not None else None)
+            supervisor.watch_frames(self._on_frame, self._on_sent)
 
     @property
     def receiving(self) -> bool:
@@ -353,10 +353,14 @@ class RawFrames:
             self._sent += sent
             self._refused += refused
 
+    def _on_sent(self, message: can.Message) -> None:
+        if self._echoing():
+            self._echo.sent(message)
+
     def _on_frame(self, message: can.Message, stamp: float) -> None:
         # The bus receive thread, for every frame taken: no lock on the way of a frame that
         # is not one's own (the echo filter's lock only on buses that echo).
-        if self._echo is not None and self._echo.is_own(message):
+        if self._echoing() and self._echo.is_own(message):
             return
         if not self.settings.filters.matches(message.arbitration_id, message.is_extended_id,
                                              message.is_remote_frame, message.is_error_frame):
