@@ -63,7 +63,14 @@ def test_burst_of_waiting_calls_is_answered_within_its_timeout(start_node, clien
                             3 * ANSWER)
     assert taken.success, taken.message
     all_taken = time.monotonic()
-    wait_until(lambda: all(f.done() for _, f in sent), 3 * ANSWER, 'an answer to every call')
+    try:
+        wait_until(lambda: all(f.done() for _, f in sent), 3 * ANSWER,
+                   'an answer to every call')
+    except AssertionError:
+        waiting = [n for n, (_, future) in enumerate(sent) if not future.done()]
+        raise AssertionError(f'{len(waiting)} of {calls} calls unanswered {3 * ANSWER:g} s '
+                             f'after the node had taken them all (calls {waiting[:20]}); the '
+                             f"node's output:\n{gateway.output()[-6000:]}") from None
     # Each answer is due at its timeout after it was taken; a busy machine may add a few
     # seconds (2.4 s measured with both cores overloaded), less than the defect's 6 s.
     allowed = all_taken + timeout + 4.0
