@@ -275,6 +275,32 @@ def test_the_command_timeout_stops_a_drive_that_ignores_the_halt_bit(rig, mode, 
                'the drive stopped by its target though it ignores the halt bit')
 
 
+@pytest.mark.parametrize('mode, target', [(CSV, 1.0), (CSP, None), (CST, 5.0), (PT, 5.0)],
+                         ids=['CSV', 'CSP', 'CST', 'PT'])
+def test_a_halt_command_stops_a_drive_that_ignores_the_halt_bit(rig, mode, target):
+    # The same drives (bit 8 without function in the cyclic modes): the halt command sets
+    # the stopping target too, and its answer waits for the axis to stand. No command
+    # timeout: the halt alone must stop it.
+    axis = rig(**{'drives.command_timeout': 0.0})
+    axis.drive.halts_in_cyclic_modes = False
+    axis.enable(mode)
+    if mode == CSP:  # each target moves the axis on: the halt must leave it where it is
+        start = axis.drive.position
+        axis.target.publish(Float64(data=(start + 300) / SCALE))
+        wait_until(lambda: axis.drive.position == start + 300, WAIT, 'the drive 300 on')
+    else:
+        axis.target.publish(Float64(data=target))
+        wait_until((lambda: axis.drive.velocity == 1000) if mode == CSV else (
+            lambda: axis.drive.torque == 5), WAIT, 'the drive following its target')
+    halted = axis.command('halt')
+    assert halted.success, halted.message
+    assert axis.drive.velocity == 0 and axis.drive.torque == 0, (
+        axis.drive.velocity, axis.drive.torque)
+    if mode == CSP:
+        assert axis.drive.position == start + 300
+    assert axis.drive.drive_state == 'OPERATION_ENABLED'  # halted, not switched off
+
+
 def test_a_drive_reset_to_its_factory_pdos_is_configured_from_its_eds_and_moves(rig):
     # The drive's own mapping has no PDO at all; the EDS of config/ maps the vendor layout,
     # written at every boot (pdo.configure).

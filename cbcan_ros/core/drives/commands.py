@@ -13,7 +13,7 @@ import contextlib
 import contextvars
 from typing import Callable, Dict, Optional, Tuple
 
-from . import cia402
+from . import cia402, safety
 from .arrival import (
     HOME_HERE,
     LimitsUnknown,
@@ -391,7 +391,16 @@ class DriveCommands:
                 f'(the drive confirmed the write; no statusword shows its state)')
 
     async def _halt(self, drive, _mode: int) -> str:
+        stopping = safety.stopping_target(drive, self._service.status(drive.node_id),
+                                          self._service.settings,
+                                          drive.objects.value(cia402.TARGET_POSITION))
         await self._send(drive, {}, halt='command')
+        if stopping:
+            # The halt bit alone leaves a drive that ignores it in a cyclic mode running. A
+            # write of its own, after the halt: in one write, a frame carrying the target
+            # with the controlword could follow another carrying the halt, and a SYNC of
+            # another master between the two would apply the older frame the drive holds.
+            await self._send(drive, stopping)
         await self._standstill(drive)
         await self._read_position(drive)
         position = self._service.status(drive.node_id).position

@@ -5,7 +5,8 @@
   called while the gateway shuts down or a managed node is deactivated, before the bus closes.
 - :func:`halt_if_timed_out`: a drive in a streaming mode without a new target for
   ``drives.command_timeout`` is halted (controlword bit 8): it decelerates and holds; in the
-  cyclic modes and profile torque its target is set to stop it too (``HALT_BY_TARGET``).
+  cyclic modes and profile torque its target is set to stop it too (:func:`stopping_target`,
+  which the halt command sends as well).
 - :func:`stop_unattended`: a drive found running when it is heard (again) is quick-stopped.
 - :func:`watch_the_gateway`: the drive's heartbeat consumer (0x1016:1) set to the gateway's
   heartbeat, so that the drive's own 0x6007 reaction stops it when the gateway, its computer
@@ -17,7 +18,7 @@ from dataclasses import replace
 import logging
 import struct
 import time
-from typing import Callable, Iterable, List, Tuple
+from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
 from ..nmt import consumer_entry
 from ..sdo.requests import Access
@@ -160,6 +161,26 @@ async def _read_back_stop(drive: DriveRecord, read_feedback) -> None:
         await asyncio.sleep(STOP_READ_INTERVAL)
 
 
+def stopping_target(drive: DriveRecord, status, settings: DriveSettings,
+                    commanded_position: Optional[int]) -> Dict[int, int]:
+    """Return the target that stops the axis in ``status``'s mode without the halt bit, or {}.
+
+    Several vendors' drives ignore controlword bit 8 in the cyclic modes (their manuals say it
+    has no function there), so a halt there also sets the target: velocity 0, the hold
+    torque (CST, PT), and in CSP ``commanded_position``, the target last sent, which a drive
+    following its stream stands at within a cycle (the actual position, a TPDO old, would
+    send it back), or where it stands when none was.
+    """
+    index = cia402.HALT_BY_TARGET.get(status.mode)
+    if index is None:
+        return {}
+    if index == cia402.TARGET_POSITION:
+        return {index: status.position if commanded_position is None else commanded_position}
+    if index == cia402.TARGET_TORQUE:
+        return {index: settings.hold_torques.get(drive.node_id, 0)}
+    return {index: 0}
+
+
 def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
                       closing: Callable[[], bool]) -> bool:
     """Halt ``drive`` if it has waited too long for a target; return whether it did.
@@ -168,6 +189,8 @@ def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
     """
     limit = settings.command_timeout
     with drive.sending:
+        # Before the lock (the objects' own), and under drive.sending: no target goes meanwhile.
+        commanded = drive.objects.value(cia402.TARGET_POSITION)
         with lock:
             status = drive.status
             if (not limit or status.state != cia402.OPERATION_ENABLED or status.needs_enable
@@ -179,12 +202,8 @@ def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
             drive.controlword |= cia402.HALT
             drive.status = replace(status, halted=True)
             word, count = drive.controlword, drive.timeouts
-            values = {cia402.CONTROLWORD: word}
-            if status.mode in cia402.HALT_BY_TARGET:
-                index = cia402.HALT_BY_TARGET[status.mode]
-                stopping = {cia402.TARGET_POSITION: status.position,
-                            cia402.TARGET_TORQUE: settings.hold_torques.get(drive.node_id, 0)}
-                values = {index: stopping.get(index, 0), **values}
+            values = {**stopping_target(drive, status, settings, commanded),
+                      cia402.CONTROLWORD: word}
         drive.objects.write(values, HALT_TIMEOUT)
     # One line per drive; later halts are counted (diagnostics), not logged again.
     (LOGGER.warning if count == 1 else LOGGER.debug)(
