@@ -250,14 +250,25 @@ def test_the_command_timeout_halts_a_streaming_drive(rig, layout):
     wait_until(lambda: axis.drive.velocity == 700, WAIT, 'the drive moving again')
 
 
-@pytest.mark.parametrize('mode, target', [(CSV, 1.0), (CSP, None), (CST, 5.0), (PT, 5.0)],
-                         ids=['CSV', 'CSP', 'CST', 'PT'])
+# The modes whose drives may ignore controlword bit 8, each with a target that moves the axis.
+IN_THE_MODES_THAT_MAY_IGNORE_THE_HALT_BIT = pytest.mark.parametrize(
+    'mode, target', [(CSV, 1.0), (CSP, None), (CST, 5.0), (PT, 5.0)],
+    ids=['CSV', 'CSP', 'CST', 'PT'])
+
+
+def drive_ignoring_the_halt_bit(rig, mode: int, command_timeout: float):
+    """Return the rig with its drive ignoring bit 8 in the cyclic modes, enabled in ``mode``."""
+    axis = rig(**{'drives.command_timeout': command_timeout})
+    axis.drive.halts_in_cyclic_modes = False
+    axis.enable(mode)
+    return axis
+
+
+@IN_THE_MODES_THAT_MAY_IGNORE_THE_HALT_BIT
 def test_the_command_timeout_stops_a_drive_that_ignores_the_halt_bit(rig, mode, target):
     # Several vendors' drives ignore controlword bit 8 in the cyclic modes: the command
     # timeout sets the target that stops the axis too (CSP: where it stands).
-    axis = rig(**{'drives.command_timeout': 0.3})
-    axis.drive.halts_in_cyclic_modes = False
-    axis.enable(mode)
+    axis = drive_ignoring_the_halt_bit(rig, mode, 0.3)
     if mode == CSP:  # a stream that keeps the axis moving, then silence
         start = axis.drive.position
         for step in range(1, 6):
@@ -275,15 +286,12 @@ def test_the_command_timeout_stops_a_drive_that_ignores_the_halt_bit(rig, mode, 
                'the drive stopped by its target though it ignores the halt bit')
 
 
-@pytest.mark.parametrize('mode, target', [(CSV, 1.0), (CSP, None), (CST, 5.0), (PT, 5.0)],
-                         ids=['CSV', 'CSP', 'CST', 'PT'])
+@IN_THE_MODES_THAT_MAY_IGNORE_THE_HALT_BIT
 def test_a_halt_command_stops_a_drive_that_ignores_the_halt_bit(rig, mode, target):
     # The same drives (bit 8 without function in the cyclic modes): the halt command sets
     # the stopping target too, and its answer waits for the axis to stand. No command
     # timeout: the halt alone must stop it.
-    axis = rig(**{'drives.command_timeout': 0.0})
-    axis.drive.halts_in_cyclic_modes = False
-    axis.enable(mode)
+    axis = drive_ignoring_the_halt_bit(rig, mode, 0.0)
     if mode == CSP:  # each target moves the axis on: the halt must leave it where it is
         start = axis.drive.position
         axis.target.publish(Float64(data=(start + 300) / SCALE))
