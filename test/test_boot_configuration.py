@@ -389,7 +389,13 @@ def test_a_boot_up_during_the_writes_ends_that_boot_and_boots_again(rig):
     wait_until(lambda: len(downloads(frames.snapshot())) >= 90, WAIT, 'the writes under way')
     frames.send(NMT, bytes([129, NODE]))
     wait_for_boot(gateway, 'BOOTED', boots=2)
-    seen = frames.snapshot()
+
+    def started():
+        # The start goes out before the boot shows BOOTED: recorded a moment after.
+        seen = frames.snapshot()
+        ups = [p for p in boot_ups(seen) if p > downloads(seen)[89][0]]
+        return seen if ups and starts(seen[ups[0]:]) else None
+    seen = wait_until(started, WAIT, 'the NMT start after the boot-up recorded')
     boot_up = [p for p in boot_ups(seen) if p > downloads(seen)[89][0]][0]
     restarted = next(p for p, obj in uploads(seen) if p > boot_up and obj == (0x1000, 0))
     late = [obj for p, obj in downloads(seen) if boot_up < p < restarted]
