@@ -10,3 +10,17 @@ others (``Notifier``, ``slcan``, adapters' clocks).
 - :mod:`.send_timeout`: the send timeout held by the kernel (``udp_multicast``).
 - :mod:`.own_frames`: the gateway's own frames dropped by the kernel (``udp_multicast``).
 """
+
+import socket
+
+import can
+
+
+def udp_multicast_of(bus: can.BusABC):
+    """Return the driver object of a ``udp_multicast`` ``bus`` that keeps its socket, or None.
+
+    python-can 4.6.1: ``UdpMulticastBus._multicast``, a ``GeneralPurposeUdpMulticastBus``
+    whose ``_socket`` sends and receives (private both: this is the one place that reads them).
+    """
+    multicast = getattr(bus, '_multicast', None)
+    return multicast if isinstance(getattr(multicast, '_socket', None), socket.socket) else None

@@ -27,6 +27,8 @@ from typing import Optional
 
 import can
 
+from . import udp_multicast_of
+
 LOGGER = logging.getLogger(__name__)
 
 # Linux only: the option (asm-generic/socket.h; x86 and ARM use it) and the fact that a UDP
@@ -41,15 +43,9 @@ _BPF_LD_H_ABS, _BPF_LD_W_ABS, _BPF_JEQ_K, _BPF_RET_K = 0x28, 0x20, 0x15, 0x06
 _SKF_NET_OFF = (1 << 32) - 0x100000
 
 
-def _multicast_of(bus: can.BusABC):
-    # python-can 4.6.1: UdpMulticastBus._multicast, a GeneralPurposeUdpMulticastBus (private).
-    multicast = getattr(bus, '_multicast', None)
-    return multicast if isinstance(getattr(multicast, '_socket', None), socket.socket) else None
-
-
 def sending_socket(bus: can.BusABC) -> Optional[socket.socket]:
     """Return the socket ``bus`` sends on, when it is a ``udp_multicast`` bus; else None."""
-    multicast = _multicast_of(bus)
+    multicast = udp_multicast_of(bus)
     if multicast is None:
         return None
     return getattr(multicast, 'cbcan_send_socket', None) or multicast._socket
@@ -62,7 +58,7 @@ def drop_own_frames(bus: can.BusABC) -> bool:
     (False); so is one where the sending socket cannot be made or the filter is refused,
     with a warning: it echoes as before.
     """
-    multicast = _multicast_of(bus)
+    multicast = udp_multicast_of(bus)
     if multicast is None or not SUPPORTED:
         return False
     receiving = multicast._socket

@@ -15,6 +15,8 @@ from typing import Optional
 
 import can
 
+from . import udp_multicast_of
+
 LOGGER = logging.getLogger(__name__)
 
 # What is asked for: seconds of a saturated bus. The kernel caps it at net.core.rmem_max
@@ -23,10 +25,11 @@ RECEIVE_BUFFER = 4 * 1024 * 1024
 
 
 def _socket_of(bus: can.BusABC) -> Optional[socket.socket]:
-    # python-can 4.6.1: SocketcanBus.socket; UdpMulticastBus._multicast._socket (private).
-    multicast = getattr(bus, '_multicast', None)
-    found = getattr(multicast, '_socket', None) if multicast is not None else \
-        getattr(bus, 'socket', None)
+    # python-can 4.6.1: SocketcanBus.socket; udp_multicast's receiving socket.
+    multicast = udp_multicast_of(bus)
+    if multicast is not None:
+        return multicast._socket
+    found = getattr(bus, 'socket', None)
     return found if isinstance(found, socket.socket) else None
 
 
