@@ -832,6 +832,27 @@ def test_a_frame_due_after_a_late_sync_waits_for_it_and_follows_it():
         producer.stop()
 
 
+def test_syncs_a_stalled_thread_could_not_send_are_counted_and_leave_the_period_measured():
+    # Once a defect: the measured period was the mean of the intervals, so a busy host that
+    # skipped a few SYNCs showed a period far from the one the devices mostly got (46.6 ms for
+    # 20 ms) and no sign of the SYNCs it skipped.
+    period = 0.02
+    bus = _HeldBus()
+    producer = sending_sync(bus, period)
+    try:
+        wait_until(bus.sending.is_set, ANSWER, 'the first SYNC on its way')
+        time.sleep(3.6 * period)  # the host stalls the thread in its first send
+        bus.release.set()
+        wait_until(lambda: len(bus.order) >= 30, ANSWER, 'thirty SYNCs')
+        status = producer.status()
+        assert status.skipped >= 3, f'{status.skipped} SYNCs counted as skipped after a stall'
+        # A wide margin: the thread wakes late on a busy host, but the median cycle is the one
+        # produced, not the mean the stall drags up.
+        assert period / 2 < status.measured_period < 1.5 * period, status
+    finally:
+        producer.stop()
+
+
 # 7. A halt released.
 
 # Once a defect: resume, and enable of a halted drive, answered with the first statusword

@@ -172,6 +172,7 @@ class Diagnostics:
             'Largest period error (ms)':
                 f'{sync.measured_jitter * 1000:.3f}' if sync.measured_jitter is not None
                 else 'no SYNC heard',
+            'SYNCs skipped': sync.skipped,
             'Counter overflow': sync.counter_overflow or 'no counter',
             'Started': sync.starts,
             'SYNC frames heard': sync.heard,

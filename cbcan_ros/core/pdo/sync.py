@@ -89,10 +89,12 @@ class SyncStatus:
     running: bool                       # the periodic task is on the bus now
     starts: int                         # times it was started (1 + reopens of the bus)
     heard: int                          # SYNC frames received (an echo of ours, or another's)
-    # Mean interval between the SYNCs the gateway's thread sent (where it sends them), else
-    # between those heard, seconds.
+    # Median interval between the SYNCs the gateway's thread sent (where it sends them), else
+    # between those heard, seconds: the cycle the devices mostly see, which SYNCs skipped on
+    # a busy host do not move (they show in the largest error and in ``skipped``).
     measured_period: Optional[float]
     measured_jitter: Optional[float]    # largest deviation of an interval from the period
+    skipped: int                        # cycles of the thread's grid that got no SYNC
 
 
 class SyncProducer:
@@ -120,6 +122,7 @@ class SyncProducer:
         self._after_sync: List[Callable[[], None]] = []
         self._before_sync: List[Callable[[], None]] = []
         self._heard = 0
+        self._skipped = 0
         self._last_heard: Optional[float] = None
         self._intervals: deque = deque(maxlen=PERIOD_SAMPLES)
         self._thread = threading.Thread(target=self._run, name='sync', daemon=True)
@@ -212,12 +215,12 @@ class SyncProducer:
         with self._lock:
             intervals = list(self._intervals)
             running = self._task is not None
-            starts, heard = self._starts, self._heard
-        measured = statistics.fmean(intervals) if intervals else None
+            starts, heard, skipped = self._starts, self._heard, self._skipped
+        measured = statistics.median(intervals) if intervals else None
         jitter = (max(abs(interval - self.period) for interval in intervals)
                   if intervals and self.period else None)
         return SyncStatus(self.period, self.counter_overflow, running, starts, heard,
-                          measured, jitter)
+                          measured, jitter, skipped)
 
     def _on_bus_change(self, status: BusStatus) -> None:
         with self._lock:
@@ -296,6 +299,8 @@ class SyncProducer:
                 cycle, sent_at = self._send_sync(task)
                 with self._lock:  # a frame held back until now goes out right after it
                     if self._task is task:
+                        # Cycles passed without a SYNC: the thread woke too late for them.
+                        self._skipped += cycle - task.sent - (sent_at is not None)
                         task.sent = cycle
                         # Not after a SYNC skipped: a frame would reach the device with the
                         # ones of the cycle before, which the time grid takes as applied.
