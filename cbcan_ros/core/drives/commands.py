@@ -394,6 +394,9 @@ class DriveCommands:
         stopping = safety.stopping_target(drive, self._service.status(drive.node_id),
                                           self._service.settings,
                                           drive.objects.value(cia402.TARGET_POSITION))
+        # The halt's frames that map the target repeat the stopping one, not an older target
+        # the axis has left (moved since by an SDO write, or another master).
+        drive.objects.know(stopping)
         await self._send(drive, {}, halt='command')
         if stopping:
             # The halt bit alone leaves a drive that ignores it in a cyclic mode running. A

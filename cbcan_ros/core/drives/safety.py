@@ -23,6 +23,7 @@ from typing import Callable, Dict, Iterable, List, Optional, Tuple
 from ..nmt import consumer_entry
 from ..sdo.requests import Access
 from . import cia402
+from .arrival import DEFAULT_WINDOW
 from .status import DriveRecord, DriveSettings
 
 LOGGER = logging.getLogger(__name__)
@@ -38,6 +39,9 @@ STOP_READ_INTERVAL = 0.02
 SHUTDOWN_WAIT = 0.5
 CONSUMER_TIMEOUT = 2.0
 HALT_TIMEOUT = 2.0  # of the command timeout's halt, when it goes by SDO
+# TPDOs after a target that may still show the drive before it took it (one sent before the
+# target arrived, one before the SYNC that applied it).
+TPDOS_BEFORE_TAKEN = 2
 
 
 def powered(drive: DriveRecord, unseen: bool = False) -> bool:
@@ -167,18 +171,38 @@ def stopping_target(drive: DriveRecord, status, settings: DriveSettings,
 
     Several vendors' drives ignore controlword bit 8 in the cyclic modes (their manuals say it
     has no function there), so a halt there also sets the target: velocity 0, the hold
-    torque (CST, PT), and in CSP ``commanded_position``, the target last sent, which a drive
-    following its stream stands at within a cycle (the actual position, a TPDO old, would
-    send it back), or where it stands when none was.
+    torque (CST, PT), and in CSP where the axis stands (``_where_it_stands``).
     """
     index = cia402.HALT_BY_TARGET.get(status.mode)
     if index is None:
         return {}
     if index == cia402.TARGET_POSITION:
-        return {index: status.position if commanded_position is None else commanded_position}
+        return {index: _where_it_stands(drive, status, commanded_position)}
     if index == cia402.TARGET_TORQUE:
         return {index: settings.hold_torques.get(drive.node_id, 0)}
     return {index: 0}
+
+
+def _where_it_stands(drive: DriveRecord, status, commanded: Optional[int]) -> int:
+    """Return the CSP position target that holds the axis where it stands.
+
+    ``commanded``, the target last sent, while the drive's shown position may not have
+    followed it yet (a drive following its stream stands there; a position a TPDO old would
+    send it back) or lies within its position window of it; once the drive has shown a
+    position since, further away, the axis left that target (moved by an SDO write or
+    another master) and the position shown holds it.
+    """
+    if commanded is None:
+        return status.position
+    window = DEFAULT_WINDOW if drive.position_window is None else drive.position_window
+    if abs(commanded - status.position) <= window:
+        return commanded
+    shown = drive.from_tpdo.get(cia402.POSITION_ACTUAL)
+    if shown is not None:
+        followed = shown[0] > drive.target_tpdos + TPDOS_BEFORE_TAKEN
+    else:  # read by SDO: a read asked after the target
+        followed = drive.polled > drive.last_target
+    return status.position if followed else commanded
 
 
 def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,

@@ -313,6 +313,7 @@ class DriveService:
                 if refused:
                     return refused
                 drive.last_target = time.monotonic()
+                drive.target_tpdos = drive.tpdos
                 values = {index: round(value)}
                 if drive.halted_by and status.mode != cia402.PROFILE_POSITION:
                     # Halted by the command timeout or a cancelled move: a target resumes it.

@@ -1,0 +1,73 @@
+"""A halt in CSP holds the axis where it stands, whoever moved it last.
+
+Once a defect: the halt's stopping target in CSP was the gateway's own record of the target
+its drive service last sent. A target the drive got another way (the gateway's own
+``sdo_write`` service, another master's SDO) is not in that record, and a halt on a drive
+that ignores controlword bit 8 in CSP sent the axis back to where the drive service had left
+it (5,000 counts here), answering "halted".
+"""
+
+import struct
+import time
+
+import can
+import pytest
+from std_msgs.msg import Float64
+from test_drives import CSP, NODE, rig, SCALE, WAIT  # noqa: F401 - rig is a fixture
+
+from conftest import wait_until
+
+JOG = 5000  # counts the axis is moved after the gateway's last target
+
+
+def _sdo_write_by_another_master(axis, position: int) -> None:
+    bus = axis.gateway.raw_bus()
+    try:  # an expedited download of 4 bytes to 0x607A:0, as any SDO client sends it
+        bus.send(can.Message(arbitration_id=0x600 + NODE, is_extended_id=False,
+                             data=bytes([0x23, 0x7A, 0x60, 0]) + struct.pack('<i', position)))
+    finally:
+        bus.shutdown()
+
+
+def _sdo_write_through_the_gateway(axis, position: int) -> None:
+    answer = axis.gateway.call('sdo_write', node_id=NODE, index=0x607A, subindex=0,
+                               data=list(struct.pack('<i', position)))
+    assert answer.success, answer.message
+
+
+@pytest.mark.parametrize('jog', [_sdo_write_through_the_gateway, _sdo_write_by_another_master],
+                         ids=['gateway_sdo_write', 'another_master'])
+def test_halt_in_csp_holds_the_axis_where_it_stands_not_at_an_older_target(rig, jog):  # noqa: F811
+    axis = rig(**{'drives.command_timeout': 0.0})
+    axis.drive.halts_in_cyclic_modes = False  # bit 8 without function in CSP (vendors)
+    axis.enable(CSP)
+    start = axis.drive.position
+    axis.target.publish(Float64(data=(start + 300) / SCALE))
+    wait_until(lambda: axis.drive.position == start + 300, WAIT, 'the drive 300 on')
+    # The axis is then moved on by a target that did not come through the drive service.
+    jog(axis, start + 300 + JOG)
+    wait_until(lambda: axis.drive.position == start + 300 + JOG, WAIT, 'the drive jogged')
+    # ... and stands there: the gateway has heard its position since.
+    wait_until(lambda: axis.joint_states and axis.joint_states[-1].position[0] * SCALE
+               == start + 300 + JOG, WAIT, 'the jogged position in joint_states')
+    listener = axis.gateway.raw_bus()
+    try:
+        halted = axis.command('halt')
+        frames = []
+        until = time.monotonic() + 0.3  # the halt's frames are on the bus by its answer
+        while time.monotonic() < until:
+            message = listener.recv(0.05)
+            if message is not None and message.arbitration_id == 0x200 + NODE:
+                frames.append(message)
+    finally:
+        listener.shutdown()
+    assert halted.success, halted.message
+    # The rig's drive maps controlword, target position and mode into its RPDO 1: no frame of
+    # the halt may carry an older target, even for the moment before the next one.
+    targets = [struct.unpack_from('<i', frame.data, 2)[0] for frame in frames]
+    assert targets and set(targets) == {start + 300 + JOG}, targets
+    # A halt must not move the axis: it stands at start + 300 + JOG, not at the target the
+    # drive service sent last (start + 300).
+    assert axis.drive.position == start + 300 + JOG, (
+        f'halt moved the axis from {start + 300 + JOG} to {axis.drive.position} '
+        f'({halted.message})')
