@@ -296,11 +296,13 @@ class SyncProducer:
                 if before == due:
                     callbacks, self._before_sync = callbacks + self._before_sync, []
             if sync == due:
-                cycle, sent_at = self._send_sync(task)
+                cycle, sent_at, refused = self._send_sync(task)
                 with self._lock:  # a frame held back until now goes out right after it
                     if self._task is task:
-                        # Cycles passed without a SYNC: the thread woke too late for them.
-                        self._skipped += cycle - task.sent - (sent_at is not None)
+                        if refused:  # the gap to the next SYNC is the outage, no period
+                            task.sent_at = None
+                        else:  # cycles passed without a SYNC: the thread was late
+                            self._skipped += cycle - task.sent - (sent_at is not None)
                         task.sent = cycle
                         # Not after a SYNC skipped: a frame would reach the device with the
                         # ones of the cycle before, which the time grid takes as applied.
@@ -319,8 +321,11 @@ class SyncProducer:
             self._intervals.append(stamp - task.sent_at)
         task.sent_at = stamp
 
-    def _send_sync(self, task: _ThreadTask) -> Tuple[int, Optional[float]]:
-        """Send the SYNC of the grid cycle due now; return the cycle and when it went out.
+    def _send_sync(self, task: _ThreadTask) -> Tuple[int, Optional[float], bool]:
+        """Send the SYNC of the grid cycle due now.
+
+        Return the cycle, when it went out (None: not sent) and whether the bus refused it
+        (down, though its thread may not have seen it yet): no lateness of the thread.
 
         One later than half a period is skipped rather than sent late: after a stall, SYNCs
         sent back to back would give the devices cycles of no length, and the next one on
@@ -334,10 +339,10 @@ class SyncProducer:
                 try:
                     self._supervisor.send(task.frames[task.count % len(task.frames)])
                     task.count += 1
-                    return cycle, time.monotonic()
+                    return cycle, time.monotonic(), False
                 except BusDown:
-                    pass  # the bus thread reports it down; this task ends then
-        return cycle, None
+                    return cycle, None, True  # the bus thread reports it; this task ends then
+        return cycle, None, False
 
     @prompt
     def _on_sync_heard(self, _can_id: int, _data: bytearray, timestamp: float) -> None:
