@@ -38,6 +38,7 @@ from typing import Callable, List, Optional
 import can
 
 from .python_can_gaps.send_timeout import kernel_send_timeout
+from .python_can_gaps.undecodable import skip_undecodable
 
 LOGGER = logging.getLogger(__name__)
 
@@ -105,6 +106,7 @@ class BusStatus:
     frames_sent: int
     error_frames: int
     frames_dropped: int = 0  # received while DISPATCH_BACKLOG frames waited for canopen
+    undecodable: int = 0  # datagrams on a udp_multicast group that held no frame, dropped
 
 
 class _SupervisedBus:
@@ -155,6 +157,7 @@ class BusSupervisor:
         self._dropped = 0
         self._sent = 0
         self._error_frames = 0
+        self._undecodable = 0
         self._listener_errors = set()
         self._listeners: List[Callable[[BusStatus], None]] = []
         self._frame_watcher: Optional[Callable[[can.Message, float], None]] = None
@@ -186,7 +189,8 @@ class BusSupervisor:
         """Return the bus state now."""
         with self._lock:
             return BusStatus(self._up, '' if self._up else self._reason, self._reopen_count,
-                             self._received, self._sent, self._error_frames, self._dropped)
+                             self._received, self._sent, self._error_frames, self._dropped,
+                             self._undecodable)
 
     def start(self) -> None:
         """Open the bus (at once if possible) and keep it open from a thread of its own.
@@ -296,6 +300,7 @@ class BusSupervisor:
                 continue
             opened = time.monotonic()
             send_timeout = kernel_send_timeout(bus, SEND_TIMEOUT)
+            skip_undecodable(bus, self._skipped_undecodable)
             self._note_sends(bus)
             self._coming_up(bus, send_timeout)
             reason = self._receive(bus)
@@ -405,6 +410,15 @@ class BusSupervisor:
                 except Exception as error:  # noqa: BLE001 - one must not deafen the rest
                     self._handler_failed(error)
             self._dispatched += 1
+
+    def _skipped_undecodable(self) -> None:
+        # On the bus thread, the counter's one writer (as the other receive counters).
+        self._undecodable += 1
+        if self._undecodable == 1:
+            LOGGER.warning('CAN bus %s: a datagram on the udp_multicast group held no CAN frame '
+                           '(another program on the same group and port?); it was dropped, '
+                           'and later ones are counted in the bus status, not logged',
+                           self.description)
 
     def _handler_failed(self, error: Exception, what: str = 'a frame handler') -> None:
         kind = (what, type(error).__name__)
