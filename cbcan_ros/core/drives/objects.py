@@ -125,6 +125,9 @@ class DriveObjects:
         self._sync_producing = sync_producing
         self._lock = threading.RLock()  # a future resolved at once runs callbacks under it
         self.commanded: Dict[int, int] = {}
+        # Whether the drive has shown a position within its window of the position target
+        # last commanded, since it was: a CSP stop holds there only until the axis left it.
+        self.position_target_shown = False
         # Objects its RPDOs map that the gateway does not command, as read from the drive
         # after the mapping read number ``_held_reads`` (-1: to be read).
         self._held: Dict[Tuple[int, int], bytes] = {}
@@ -142,12 +145,22 @@ class DriveObjects:
         """Drop the commanded values (the drive booted: they are read again)."""
         with self._lock:
             self.commanded.clear()
+            self.position_target_shown = False
             self._held, self._held_reads = {}, -1
 
     def know(self, values: Dict[int, int]) -> None:
         """Take ``values`` as what the drive has now, without sending them."""
         with self._lock:
             self.commanded.update(values)
+            if cia402.TARGET_POSITION in values:
+                self.position_target_shown = False
+
+    def saw_position(self, position: int, window: int) -> None:
+        """Note a position the drive showed: whether it stood at its position target."""
+        with self._lock:
+            target = self.commanded.get(cia402.TARGET_POSITION)
+            if target is not None and abs(position - target) <= window:
+                self.position_target_shown = True
 
     def mapped_feedback(self) -> FrozenSet[int]:
         """Return the feedback objects the drive sends in an enabled, usable TPDO.
@@ -203,6 +216,8 @@ class DriveObjects:
         with self._lock:
             previous = self.commanded.get(cia402.CONTROLWORD)
             self.commanded.update(values)
+            if cia402.TARGET_POSITION in values:
+                self.position_target_shown = False
             commanded = dict(self.commanded)
             self._writes += 1
             if cia402.CONTROLWORD in values:

@@ -39,9 +39,6 @@ STOP_READ_INTERVAL = 0.02
 SHUTDOWN_WAIT = 0.5
 CONSUMER_TIMEOUT = 2.0
 HALT_TIMEOUT = 2.0  # of the command timeout's halt, when it goes by SDO
-# TPDOs after a target that may still show the drive before it took it (one sent before the
-# target arrived, one before the SYNC that applied it).
-TPDOS_BEFORE_TAKEN = 2
 
 
 def powered(drive: DriveRecord, unseen: bool = False) -> bool:
@@ -183,26 +180,25 @@ def stopping_target(drive: DriveRecord, status, settings: DriveSettings,
     return {index: 0}
 
 
+def window_of(drive: DriveRecord) -> int:
+    """Return the drive's position window (0x6067) in drive units, a default until read."""
+    return DEFAULT_WINDOW if drive.position_window is None else drive.position_window
+
+
 def _where_it_stands(drive: DriveRecord, status, commanded: Optional[int]) -> int:
     """Return the CSP position target that holds the axis where it stands.
 
-    ``commanded``, the target last sent, while the drive's shown position may not have
-    followed it yet (a drive following its stream stands there; a position a TPDO old would
-    send it back) or lies within its position window of it; once the drive has shown a
-    position since, further away, the axis left that target (moved by an SDO write or
-    another master) and the position shown holds it.
+    ``commanded``, the target last sent, until the drive has shown it stood there (a drive
+    following its stream is on its way there; the position it shows, a TPDO old, would send
+    it back); after that, a position shown outside its window of that target says the axis
+    left it (moved by an SDO write or another master), and that position holds it.
     """
     if commanded is None:
         return status.position
-    window = DEFAULT_WINDOW if drive.position_window is None else drive.position_window
-    if abs(commanded - status.position) <= window:
+    if (abs(commanded - status.position) <= window_of(drive)
+            or not drive.objects.position_target_shown):
         return commanded
-    shown = drive.from_tpdo.get(cia402.POSITION_ACTUAL)
-    if shown is not None:
-        followed = shown[0] > drive.target_tpdos + TPDOS_BEFORE_TAKEN
-    else:  # read by SDO: a read asked after the target
-        followed = drive.polled > drive.last_target
-    return status.position if followed else commanded
+    return status.position
 
 
 def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,

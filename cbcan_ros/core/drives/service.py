@@ -313,7 +313,6 @@ class DriveService:
                 if refused:
                     return refused
                 drive.last_target = time.monotonic()
-                drive.target_tpdos = drive.tpdos
                 values = {index: round(value)}
                 if drive.halted_by and status.mode != cia402.PROFILE_POSITION:
                     # Halted by the command timeout or a cancelled move: a target resumes it.
@@ -564,6 +563,8 @@ class DriveService:
             changed = old.told != new.told
             if changed and told:
                 self._tell(drive)
+        if cia402.POSITION_ACTUAL in values:
+            drive.objects.saw_position(values[cia402.POSITION_ACTUAL], safety.window_of(drive))
         if new.faulted and not old.faulted:
             self._runner.submit(self._read_error(drive))
         if ran_again:

@@ -97,7 +97,6 @@ class DriveRecord:
     _controlword: int = 0  # the controlword the gateway commands (``controlword``)
     halted_by: str = ''  # '', 'command' or 'timeout'
     last_target: float = 0.0
-    target_tpdos: int = 0  # ``tpdos`` when the last target of a stream went out
     polling: bool = False
     polled: float = 0.0  # time.monotonic() of the last SDO read of its feedback
     # What TPDOs brought at that read: (object, mapping read it came by).
