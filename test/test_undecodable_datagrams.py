@@ -46,6 +46,6 @@ def test_datagrams_that_are_no_frames_are_counted_and_sdo_goes_on(start_node, cl
     finally:
         sender.close()
     bus = recorder.wait_for(f'{name}: CAN bus', DiagnosticStatus.OK, timeout=10.0,
-                            where=lambda v: int(v['Datagrams without a frame']) == DATAGRAMS)
+                            where=lambda v: int(v['Datagrams dropped']) == DATAGRAMS)
     assert values(bus)['Reopen count'] == '0', values(bus)
     assert node.output().count('held no CAN frame') == 1, node.output()[-3000:]

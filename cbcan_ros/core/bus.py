@@ -106,7 +106,7 @@ class BusStatus:
     frames_sent: int
     error_frames: int
     frames_dropped: int = 0  # received while DISPATCH_BACKLOG frames waited for canopen
-    undecodable: int = 0  # datagrams on a udp_multicast group that held no frame, dropped
+    datagrams_dropped: int = 0  # udp_multicast: no frame of this bus (``undecodable``)
 
 
 class _SupervisedBus:
@@ -157,7 +157,7 @@ class BusSupervisor:
         self._dropped = 0
         self._sent = 0
         self._error_frames = 0
-        self._undecodable = 0
+        self._datagrams_dropped = 0
         self._listener_errors = set()
         self._listeners: List[Callable[[BusStatus], None]] = []
         self._frame_watcher: Optional[Callable[[can.Message, float], None]] = None
@@ -190,7 +190,7 @@ class BusSupervisor:
         with self._lock:
             return BusStatus(self._up, '' if self._up else self._reason, self._reopen_count,
                              self._received, self._sent, self._error_frames, self._dropped,
-                             self._undecodable)
+                             self._datagrams_dropped)
 
     def start(self) -> None:
         """Open the bus (at once if possible) and keep it open from a thread of its own.
@@ -300,7 +300,7 @@ class BusSupervisor:
                 continue
             opened = time.monotonic()
             send_timeout = kernel_send_timeout(bus, SEND_TIMEOUT)
-            skip_undecodable(bus, self._skipped_undecodable)
+            skip_undecodable(bus, self._dropped_datagram)
             self._note_sends(bus)
             self._coming_up(bus, send_timeout)
             reason = self._receive(bus)
@@ -335,50 +335,53 @@ class BusSupervisor:
                 return f'receiving failed: {error}'
             if message is None:
                 continue
-            stamp = time.monotonic()
-            if watcher is not None:
-                try:
-                    watcher(message, stamp)
-                except Exception as error:  # noqa: BLE001 - it must not deafen CANopen
-                    self._handler_failed(error)
-            if message.is_error_frame:
-                self._error_frames += 1
-                if message.arbitration_id & CAN_ERR_BUSOFF:
-                    return 'the adapter reported bus-off'
-                continue
-            # CANopen (CiA 301) uses 11-bit identifiers: extended frames are not for us.
-            if message.is_remote_frame or message.is_extended_id:
-                continue
-            # Each counter has one writer (_dispatched the dispatch thread, the others this
-            # thread): no lock. Frames are waiting while the dispatch thread has not returned
-            # from all it was given.
-            waiting = self._queued != self._dispatched
-            if self._queued - self._dispatched >= DISPATCH_BACKLOG:
-                self._dropped += 1
-                if self._dropped == 1:
-                    LOGGER.error('CAN bus %s: frames arrive faster than they can be handled; '
-                                 'frames beyond a backlog of %d are dropped (counted in the '
-                                 'bus status)', self.description, DISPATCH_BACKLOG)
-                continue
-            self._received += 1
-            frame_id = message.arbitration_id
-            handlers = subscribers.get(frame_id)
-            if not handlers:
-                continue  # nobody listens (an echo of ours, another master's frames)
-            if not waiting:  # (a loop, not all(): this runs for every frame)
+            try:  # no frame, however odd, may end this thread: the bus would be deaf
+                stamp = time.monotonic()
+                if watcher is not None:
+                    try:
+                        watcher(message, stamp)
+                    except Exception as error:  # noqa: BLE001 - it must not deafen CANopen
+                        self._handler_failed(error)
+                if message.is_error_frame:
+                    self._error_frames += 1
+                    if message.arbitration_id & CAN_ERR_BUSOFF:
+                        return 'the adapter reported bus-off'
+                    continue
+                # CANopen (CiA 301) uses 11-bit identifiers: extended frames are not for us.
+                if message.is_remote_frame or message.is_extended_id:
+                    continue
+                # Each counter has one writer (_dispatched the dispatch thread, the others this
+                # thread): no lock. Frames are waiting while the dispatch thread has not returned
+                # from all it was given.
+                waiting = self._queued != self._dispatched
+                if self._queued - self._dispatched >= DISPATCH_BACKLOG:
+                    self._dropped += 1
+                    if self._dropped == 1:
+                        LOGGER.error('CAN bus %s: frames arrive faster than they can be handled; '
+                                     'frames beyond a backlog of %d are dropped (counted in the '
+                                     'bus status)', self.description, DISPATCH_BACKLOG)
+                    continue
+                self._received += 1
+                frame_id = message.arbitration_id
+                handlers = subscribers.get(frame_id)
+                if not handlers:
+                    continue  # nobody listens (an echo of ours, another master's frames)
+                if not waiting:  # (a loop, not all(): this runs for every frame)
+                    for handler in handlers:
+                        if not getattr(handler, 'prompt_handler', False):
+                            waiting = True
+                            break
+                if waiting:
+                    self._queued += 1
+                    frames.put((frame_id, message.data, stamp))
+                    continue
                 for handler in handlers:
-                    if not getattr(handler, 'prompt_handler', False):
-                        waiting = True
-                        break
-            if waiting:
-                self._queued += 1
-                frames.put((frame_id, message.data, stamp))
-                continue
-            for handler in handlers:
-                try:
-                    handler(frame_id, message.data, stamp)
-                except Exception as error:  # noqa: BLE001 - one must not deafen the rest
-                    self._handler_failed(error)
+                    try:
+                        handler(frame_id, message.data, stamp)
+                    except Exception as error:  # noqa: BLE001 - one must not deafen the rest
+                        self._handler_failed(error)
+            except Exception as error:  # noqa: BLE001
+                self._handler_failed(error, 'taking a received frame')
 
     def _note_sends(self, bus: can.BusABC) -> None:
         """Have every frame sent through ``bus`` told to ``on_sent`` (see watch_frames)."""
@@ -411,14 +414,14 @@ class BusSupervisor:
                     self._handler_failed(error)
             self._dispatched += 1
 
-    def _skipped_undecodable(self) -> None:
+    def _dropped_datagram(self) -> None:
         # On the bus thread, the counter's one writer (as the other receive counters).
-        self._undecodable += 1
-        if self._undecodable == 1:
+        self._datagrams_dropped += 1
+        if self._datagrams_dropped == 1:
             LOGGER.warning('CAN bus %s: a datagram on the udp_multicast group held no CAN frame '
-                           '(another program on the same group and port?); it was dropped, '
-                           'and later ones are counted in the bus status, not logged',
-                           self.description)
+                           'of this bus (another program on the same group and port?); it '
+                           'was dropped, and later ones are counted in the bus status, not '
+                           'logged', self.description)
 
     def _handler_failed(self, error: Exception, what: str = 'a frame handler') -> None:
         kind = (what, type(error).__name__)

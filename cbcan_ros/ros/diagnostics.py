@@ -138,7 +138,7 @@ class Diagnostics:
             'Frames sent': status.frames_sent,
             'Error frames': status.error_frames,
             'Frames dropped': status.frames_dropped,
-            'Datagrams without a frame': status.undecodable,
+            'Datagrams dropped': status.datagrams_dropped,
             **self._heartbeat_values(),
             **self._raw_values(),
         })

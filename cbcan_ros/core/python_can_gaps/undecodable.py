@@ -1,11 +1,18 @@
-"""A datagram on the ``udp_multicast`` group that holds no frame: dropped, not a dead bus.
+"""What a ``udp_multicast`` group carries that is no frame of this bus: dropped, counted.
 
-python-can 4.6.1's ``udp_multicast`` driver raises ``CanOperationError('could not unpack
-received message')`` from ``recv`` for any datagram on the group's port it cannot unpack
-(another program on the same group and port, a scan, a python-can of another wire format),
-which a receive loop can only take as a failed adapter: one such datagram took the gateway's
-bus down and failed the transfers under way, and a few more kept it down. Here the driver
-drops such a datagram and tells ``on_skipped``; the bus stays up.
+python-can 4.6.1's ``udp_multicast`` driver takes whatever another program sends to the
+group's port:
+
+- a datagram it cannot unpack makes ``recv`` raise ``CanOperationError('could not unpack
+  received message')``, which a receive loop can only take as a failed adapter (one took the
+  gateway's bus down and failed the transfers under way, a few more kept it down);
+- a datagram it does unpack is a ``Message`` whatever its field types (msgpack carries
+  floats, and its check lets an arbitration id of 0.5 through), which no CANopen code expects
+  (one ended the gateway's receive thread: the bus looked up and was deaf);
+- an error frame is another program's (no adapter reports to a group), yet a bus-off one
+  would take the gateway's bus down.
+
+Here the driver drops all three and tells ``on_dropped()``; the bus stays up.
 """
 
 from typing import Callable
@@ -16,10 +23,12 @@ from . import udp_multicast_of
 
 # python-can 4.6.1's text for a datagram it could not unpack (udp_multicast/bus.py).
 UNDECODABLE = 'could not unpack received message'
+_FLAGS = ('is_extended_id', 'is_remote_frame', 'is_error_frame', 'is_fd', 'bitrate_switch',
+          'error_state_indicator', 'is_rx')
 
 
-def skip_undecodable(bus: can.BusABC, on_skipped: Callable[[], None]) -> bool:
-    """Have a ``udp_multicast`` ``bus`` drop datagrams that are no frame, calling ``on_skipped()``.
+def skip_undecodable(bus: can.BusABC, on_dropped: Callable[[], None]) -> bool:
+    """Have a ``udp_multicast`` ``bus`` drop what is no frame of it, calling ``on_dropped()``.
 
     Return whether it does (False: any other bus, left as it is).
     """
@@ -29,11 +38,26 @@ def skip_undecodable(bus: can.BusABC, on_skipped: Callable[[], None]) -> bool:
 
     def recv_internal(timeout):
         try:
-            return receive(timeout)
+            message, filtered = receive(timeout)
         except can.CanOperationError as error:
             if str(error) != UNDECODABLE or error.__cause__ is None:
                 raise  # the socket itself failed: a bus fault
-            on_skipped()
+            on_dropped()
             return None, False
+        if message is not None and not is_frame_of_this_bus(message):
+            on_dropped()
+            return None, False
+        return message, filtered
     bus._recv_internal = recv_internal
     return True
+
+
+def is_frame_of_this_bus(message: can.Message) -> bool:
+    """Return whether ``message`` is a well-formed CAN frame, not another bus's error frame."""
+    can_id, data = message.arbitration_id, message.data
+    if not all(type(getattr(message, flag, False)) is bool for flag in _FLAGS):
+        return False
+    return (type(can_id) is int and 0 <= can_id < (1 << (29 if message.is_extended_id else 11))
+            and isinstance(data, (bytes, bytearray))
+            and len(data) <= (64 if message.is_fd else 8)
+            and not message.is_error_frame)

@@ -41,6 +41,7 @@ from durand.services.sdo.server import SDODomainAbort, TransferState
 
 from ...core import nmt
 from ...core.python_can_gaps.receive_buffer import deepen_receive_buffer
+from ...core.python_can_gaps.undecodable import skip_undecodable
 from .dictionary import (
     ABORT_LENGTH_TOO_HIGH,
     add_objects,
@@ -156,6 +157,9 @@ class DurandDevice:
         scheduler = shared_scheduler()
         bus = can.Bus(**self._bus_options)
         deepen_receive_buffer(bus)  # a device answers SDO requests sent in a flood, too
+        # Another program's datagrams on the group are dropped, not a receive failure each
+        # (a traceback and a pause: 20 a second kept the device from answering).
+        skip_undecodable(bus, lambda: None)
         network = BusNetwork(bus, scheduler.lock, self._on_remote_frame)
         with scheduler.lock:
             # Built muted: durand sends a boot-up while still constructing, before our
