@@ -1,14 +1,12 @@
-"""Frames that python-can DOES unpack, sent by another program on the udp_multicast group.
+"""What another program sends to the gateway's udp_multicast group does not take its bus.
 
-The gateway drops datagrams that hold no frame (test_undecodable_datagrams). A datagram that
-python-can unpacks into a frame with ``check=True`` is taken as a frame, whatever its field
-types: msgpack carries floats, and python-can's check accepts an arbitration id of 0.5 on an
-error frame. The gateway's bus thread then computes ``arbitration_id & CAN_ERR_BUSOFF`` outside
-any guard (core/bus.py ``_receive``), the TypeError ends the bus thread, and the gateway is
-deaf for good while /diagnostics goes on saying the bus is up.
-
-Also: an error frame on a udp_multicast group is another program's (there is no adapter): one
-with the bus-off class bit takes the gateway's bus down, and it fails the SDO under way.
+Another program on the same group and port (or a scan) sends datagrams python-can cannot
+unpack, frames it unpacks whatever their field types (msgpack carries floats; python-can's
+check lets an error frame with the id 0.5 through), and error frames, which on a group are
+another program's (no adapter reports to it). Once defects, each: a datagram that did not
+unpack took the bus down and failed the transfers under way; the float id ended the bus
+thread (the gateway deaf for good, /diagnostics saying the bus is up); a bus-off error frame
+took the bus down. Now each is dropped, counted in /diagnostics and logged once.
 """
 
 import socket
@@ -25,6 +23,7 @@ from conftest import wait_until
 from node_process import call, private_bus, service_client
 
 DEVICE = 5
+DATAGRAMS = 20
 
 
 def _gateway(start_node, client_node, start_durand):
@@ -41,14 +40,30 @@ def _gateway(start_node, client_node, start_durand):
     return group, port, name, node, sdo_read, request
 
 
-def _send(group, port, frame: dict) -> None:
+def _send(group, port, frame) -> None:
+    """Send ``frame`` (a dict, packed as python-can packs one; bytes as they are)."""
     sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         sender.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
-        sender.sendto(msgpack.packb({'timestamp': 0.0, **frame}, use_bin_type=True),
-                      (group, port))
+        sender.sendto(frame if isinstance(frame, bytes) else msgpack.packb(
+            {'timestamp': 0.0, **frame}, use_bin_type=True), (group, port))
     finally:
         sender.close()
+
+
+def test_datagrams_that_are_no_frames_are_counted_and_sdo_goes_on(start_node, client_node,
+                                                                  start_durand):
+    group, port, name, node, sdo_read, request = _gateway(start_node, client_node, start_durand)
+    recorder = DiagnosticsRecorder(client_node)
+    for number in range(DATAGRAMS):
+        # Not msgpack at all, and msgpack that is no frame.
+        _send(group, port, b'not a CAN frame' if number % 2 else b'\x93\x01\x02\x03')
+        answer = call(sdo_read, request, 'sdo_read', node)
+        assert answer.success, f'read after datagram {number}: {answer.message}'
+    bus = recorder.wait_for(f'{name}: CAN bus', DiagnosticStatus.OK, timeout=10.0,
+                            where=lambda v: int(v['Datagrams dropped']) == DATAGRAMS)
+    assert values(bus)['Reopen count'] == '0', values(bus)
+    assert node.output().count('held no CAN frame') == 1, node.output()[-3000:]
 
 
 def test_an_error_frame_with_a_float_id_does_not_make_the_gateway_deaf(start_node, client_node,
