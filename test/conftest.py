@@ -96,6 +96,16 @@ def new_channel() -> str:
     return f'test-{uuid.uuid4().hex[:8]}'
 
 
+def frames_within(bus: can.BusABC, seconds: float) -> list:
+    """Return the frames ``bus`` receives in the next ``seconds`` (what a command sent)."""
+    frames, until = [], time.monotonic() + seconds
+    while time.monotonic() < until:
+        message = bus.recv(0.05)
+        if message is not None:
+            frames.append(message)
+    return frames
+
+
 def wait_until(condition, timeout: float, what: str):
     """Wait for ``condition()`` to become truthy, failing the test after ``timeout`` seconds."""
     deadline = time.monotonic() + timeout

@@ -8,14 +8,13 @@ it (5,000 counts here), answering "halted".
 """
 
 import struct
-import time
 
 import can
 import pytest
 from std_msgs.msg import Float64
 from test_drives import CSP, NODE, rig, SCALE, WAIT  # noqa: F401 - rig is a fixture
 
-from conftest import wait_until
+from conftest import frames_within, wait_until
 
 JOG = 5000  # counts the axis is moved after the gateway's last target
 
@@ -53,12 +52,7 @@ def test_halt_in_csp_holds_the_axis_where_it_stands_not_at_an_older_target(rig, 
     listener = axis.gateway.raw_bus()
     try:
         halted = axis.command('halt')
-        seen = []
-        until = time.monotonic() + 0.3  # the halt's frames are on the bus by its answer
-        while time.monotonic() < until:
-            message = listener.recv(0.05)
-            if message is not None:
-                seen.append(message)
+        seen = frames_within(listener, 0.3)  # the halt's frames are on the bus by its answer
     finally:
         listener.shutdown()
     assert halted.success, halted.message

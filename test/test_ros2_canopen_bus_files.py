@@ -8,7 +8,6 @@ must boot: checked, configured as the file says, and started.
 import pathlib
 import shutil
 import struct
-import time
 
 from action_msgs.msg import GoalStatus
 import pytest
@@ -18,7 +17,7 @@ from cbcan_ros.action import DriveMove
 from cbcan_ros.simulation.durand.device import DurandDevice
 from cbcan_ros.simulation.durand.drive import DurandDrive
 
-from conftest import new_channel, wait_for_future, wait_until
+from conftest import frames_within, new_channel, wait_for_future, wait_until
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 FILES = ROOT / 'test' / 'bus_descriptions'
@@ -130,11 +129,7 @@ def test_a_drive_whose_boot_failed_cannot_be_enabled(cia402_example):
         answer = gateway.call('drive_command', node_id=2, command='enable', mode=PP)
         assert not answer.success, answer.message
         assert 'boot failed (CiA 302-2 error M' in answer.message, answer.message
-        sent, until = [], time.monotonic() + 0.5  # what the refusal may have sent
-        while time.monotonic() < until:
-            message = bus.recv(0.05)
-            if message is not None:
-                sent.append(message)
+        sent = frames_within(bus, 0.5)  # what the refusal may have sent
     finally:
         bus.shutdown()
     assert not [m for m in sent if m.arbitration_id == 0x602 and m.data[1:3] == b'\x40\x60'
