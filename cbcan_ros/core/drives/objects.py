@@ -157,6 +157,8 @@ class DriveObjects:
 
     def saw_position(self, position: int, window: int) -> None:
         """Note a position the drive showed: whether it stood at its position target."""
+        if self.position_target_shown:
+            return  # most TPDOs: no lock (a new target resets it under the lock)
         with self._lock:
             target = self.commanded.get(cia402.TARGET_POSITION)
             if target is not None and abs(position - target) <= window:
@@ -215,9 +217,7 @@ class DriveObjects:
         data = {index: encode(index, value) for index, value in values.items()}
         with self._lock:
             previous = self.commanded.get(cia402.CONTROLWORD)
-            self.commanded.update(values)
-            if cia402.TARGET_POSITION in values:
-                self.position_target_shown = False
+            self.know(values)
             commanded = dict(self.commanded)
             self._writes += 1
             if cia402.CONTROLWORD in values:
