@@ -37,8 +37,8 @@ from typing import Callable, List, Optional
 
 import can
 
+from .python_can_gaps.foreign_datagrams import drop_foreign_datagrams
 from .python_can_gaps.send_timeout import kernel_send_timeout
-from .python_can_gaps.undecodable import skip_undecodable
 
 LOGGER = logging.getLogger(__name__)
 
@@ -106,7 +106,7 @@ class BusStatus:
     frames_sent: int
     error_frames: int
     frames_dropped: int = 0  # received while DISPATCH_BACKLOG frames waited for canopen
-    datagrams_dropped: int = 0  # udp_multicast: no frame of this bus (``undecodable``)
+    datagrams_dropped: int = 0  # udp_multicast: no frame of this bus (``foreign_datagrams``)
 
 
 class _SupervisedBus:
@@ -300,7 +300,7 @@ class BusSupervisor:
                 continue
             opened = time.monotonic()
             send_timeout = kernel_send_timeout(bus, SEND_TIMEOUT)
-            skip_undecodable(bus, self._dropped_datagram)
+            drop_foreign_datagrams(bus, self._dropped_datagram)
             self._note_sends(bus)
             self._coming_up(bus, send_timeout)
             reason = self._receive(bus)

@@ -9,7 +9,7 @@ others (``Notifier``, ``slcan``, adapters' clocks).
 - :mod:`.receive_buffer`: a receive buffer deep enough for a thread held up (both drivers).
 - :mod:`.send_timeout`: the send timeout held by the kernel (``udp_multicast``).
 - :mod:`.own_frames`: the gateway's own frames dropped by the kernel (``udp_multicast``).
-- :mod:`.undecodable`: what a group carries that is no frame of this bus (a datagram that
+- :mod:`.foreign_datagrams`: what a group carries that is no frame of this bus (a datagram that
   does not unpack, a malformed frame, another program's error frame) dropped, not taken as
   a dead bus (``udp_multicast``).
 """

@@ -40,8 +40,8 @@ from durand.services.nmt import StateEnum
 from durand.services.sdo.server import SDODomainAbort, TransferState
 
 from ...core import nmt
+from ...core.python_can_gaps.foreign_datagrams import drop_foreign_datagrams
 from ...core.python_can_gaps.receive_buffer import deepen_receive_buffer
-from ...core.python_can_gaps.undecodable import skip_undecodable
 from .dictionary import (
     ABORT_LENGTH_TOO_HIGH,
     add_objects,
@@ -159,7 +159,7 @@ class DurandDevice:
         deepen_receive_buffer(bus)  # a device answers SDO requests sent in a flood, too
         # Another program's datagrams on the group are dropped, not a receive failure each
         # (a traceback and a pause: 20 a second kept the device from answering).
-        skip_undecodable(bus, lambda: None)
+        drop_foreign_datagrams(bus, lambda: None)
         network = BusNetwork(bus, scheduler.lock, self._on_remote_frame)
         with scheduler.lock:
             # Built muted: durand sends a boot-up while still constructing, before our

@@ -27,7 +27,7 @@ _FLAGS = ('is_extended_id', 'is_remote_frame', 'is_error_frame', 'is_fd', 'bitra
           'error_state_indicator', 'is_rx')
 
 
-def skip_undecodable(bus: can.BusABC, on_dropped: Callable[[], None]) -> bool:
+def drop_foreign_datagrams(bus: can.BusABC, on_dropped: Callable[[], None]) -> bool:
     """Have a ``udp_multicast`` ``bus`` drop what is no frame of it, calling ``on_dropped()``.
 
     Return whether it does (False: any other bus, left as it is).
@@ -44,7 +44,7 @@ def skip_undecodable(bus: can.BusABC, on_dropped: Callable[[], None]) -> bool:
                 raise  # the socket itself failed: a bus fault
             on_dropped()
             return None, False
-        if message is not None and not is_frame_of_this_bus(message):
+        if message is not None and not _is_frame_of_this_bus(message):
             on_dropped()
             return None, False
         return message, filtered
@@ -52,7 +52,7 @@ def skip_undecodable(bus: can.BusABC, on_dropped: Callable[[], None]) -> bool:
     return True
 
 
-def is_frame_of_this_bus(message: can.Message) -> bool:
+def _is_frame_of_this_bus(message: can.Message) -> bool:
     """Return whether ``message`` is a well-formed CAN frame, not another bus's error frame."""
     can_id, data = message.arbitration_id, message.data
     if not all(type(getattr(message, flag, False)) is bool for flag in _FLAGS):
