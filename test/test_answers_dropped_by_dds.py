@@ -222,15 +222,22 @@ def test_the_node_offers_again_what_rmw_really_dropped_and_answers_others_meanwh
             for kind, service in ((NmtState, 'nmt_state'), (SdoRead, 'sdo_read'),
                                   (GetParameters, 'get_parameters'))]
     read = service_client(client_node, SdoRead, f'{name}/sdo_read', gateway)
-    # Their requests are kept (TRANSIENT_LOCAL) until their writers match the node's readers;
-    # wait_for_service would wait for ever, for the answer readers never match.
+
+    def read_by_a_matched_caller() -> None:
+        answer = call(read, SdoRead.Request(node_id=2, index=0x1000, subindex=0, max_size=4),
+                      'a read by a matched caller', gateway)
+        assert answer.success, answer.message
+    # wait_for_service would wait for ever for the lost callers (their answer readers never
+    # match), and a request written before the node's VOLATILE request reader matched its
+    # writer is never delivered. The node discovers this process's endpoints in the order
+    # they were made: once it answered a caller made after the lost ones, it has matched
+    # their request writers too.
+    read_by_a_matched_caller()
     lost[0].call_async(NmtState.Request(node_id=2))
     lost[1].call_async(SdoRead.Request(node_id=2, index=0x1000, subindex=0, max_size=4))
     lost[2].call_async(GetParameters.Request(names=['nodes']))
     for _ in range(3):
-        answer = call(read, SdoRead.Request(node_id=2, index=0x1000, subindex=0, max_size=4),
-                      'a read by a matched caller', gateway)
-        assert answer.success, answer.message
+        read_by_a_matched_caller()
 
     def given_up():
         found = [SUMMARY.search(line) for line in gateway.output().splitlines()]
