@@ -8,11 +8,14 @@ it (5,000 counts here), answering "halted".
 """
 
 import struct
+import threading
 
 import can
 import pytest
 from std_msgs.msg import Float64
 from test_drives import CSP, NODE, rig, SCALE, WAIT  # noqa: F401 - rig is a fixture
+
+from cbcan_ros.core.drives import safety
 
 from conftest import frames_within, wait_until
 
@@ -71,3 +74,45 @@ def test_halt_in_csp_holds_the_axis_where_it_stands_not_at_an_older_target(rig, 
     assert axis.drive.position == start + 300 + JOG, (
         f'halt moved the axis from {start + 300 + JOG} to {axis.drive.position} '
         f'({halted.message})')
+
+
+def test_a_target_streamed_while_the_halt_decides_where_to_stop_does_not_move_the_axis(
+        rig, monkeypatch):  # noqa: F811
+    """A target that comes while the halt works out its stopping target waits for the halt.
+
+    Once a defect: the stopping target was decided before the halt took the drive's send
+    lock. A target streamed in that instant went out, the halt's frames then put the older
+    stopping target back, and the axis stepped forward and back.
+    """
+    axis = rig(**{'drives.command_timeout': 0.0})
+    axis.drive.halts_in_cyclic_modes = False  # bit 8 without function in CSP (vendors)
+    axis.enable(CSP)
+    start = axis.drive.position
+    axis.target.publish(Float64(data=(start + 300) / SCALE))
+    wait_until(lambda: axis.drive.position == start + 300, WAIT, 'the drive 300 on')
+    service = axis.gateway.node.gateway.drives
+    streamed = []
+    deciding = safety.stopping_target
+
+    def stream_a_target_meanwhile(*arguments):
+        if not streamed:  # the next target of a stream, from the executor, in this instant
+            racing = threading.Thread(target=lambda: streamed.append(
+                service.target(NODE, start + 300 + JOG)))
+            racing.start()
+            racing.join(0.5)  # it goes at once unless the halt holds the send lock
+        return deciding(*arguments)
+    monkeypatch.setattr(safety, 'stopping_target', stream_a_target_meanwhile)
+    listener = axis.gateway.raw_bus()
+    try:
+        halted = axis.command('halt')
+        wait_until(lambda: streamed, WAIT, 'the streamed target answered')
+        seen = frames_within(listener, 0.3)
+    finally:
+        listener.shutdown()
+    assert halted.success, halted.message
+    assert not streamed[0].success and 'halted by a halt command' in streamed[0].message, \
+        streamed[0].message
+    targets = [struct.unpack_from('<i', message.data, 2)[0] for message in seen
+               if message.arbitration_id == 0x200 + NODE]
+    assert start + 300 + JOG not in targets, targets
+    assert axis.drive.position == start + 300, axis.drive.position

@@ -13,7 +13,7 @@ import contextlib
 import contextvars
 from typing import Callable, Dict, Optional, Tuple
 
-from . import cia402, safety
+from . import cia402
 from .arrival import (
     HOME_HERE,
     LimitsUnknown,
@@ -200,15 +200,17 @@ class DriveCommands:
                 return status
             await woken
 
-    async def _send(self, drive, values: Dict[int, int], halt: Optional[str] = None) -> int:
+    async def _send(self, drive, values: Dict[int, int], halt: Optional[str] = None,
+                    stopping: Optional[Dict[int, int]] = None) -> int:
         """Send ``values``; return the statuswords taken before (what a reply must exceed).
 
-        ``halt``: set or release the halt with them (``DriveService.send``).
+        ``halt``: set or release the halt with them; ``stopping``: filled with the target
+        that stops the axis (both as ``DriveService.send``).
         """
         mark = drive.updates
         try:
             sent = self._service.send(drive, values, SEND_TIMEOUT, READS_AT_START.get(),
-                                      ENABLED_ONLY.get(), halt)
+                                      ENABLED_ONLY.get(), halt, stopping=stopping)
         except ValueError as error:
             raise DriveFailed(f'node {drive.node_id}: {error}; nothing was sent') from None
         # Most writes are sent by the time send returns: no round through the loop for them.
@@ -391,13 +393,10 @@ class DriveCommands:
                 f'(the drive confirmed the write; no statusword shows its state)')
 
     async def _halt(self, drive, _mode: int) -> str:
-        stopping = safety.stopping_target(drive, self._service.status(drive.node_id),
-                                          self._service.settings,
-                                          drive.objects.value(cia402.TARGET_POSITION))
         # The halt's frames that map the target repeat the stopping one, not an older target
         # the axis has left (moved since by an SDO write, or another master).
-        drive.objects.know(stopping)
-        await self._send(drive, {}, halt='command')
+        stopping: Dict[int, int] = {}
+        await self._send(drive, {}, halt='command', stopping=stopping)
         if stopping:
             # The halt bit alone leaves a drive that ignores it in a cyclic mode running. A
             # write of its own, after the halt: in one write, a frame carrying the target

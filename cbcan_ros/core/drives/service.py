@@ -338,7 +338,7 @@ class DriveService:
 
     def send(self, drive: DriveRecord, values: Dict[int, int], timeout: float,
              reads: Optional[int], enabled: bool = False, halt: Optional[str] = None,
-             by_sdo: bool = False) -> 'Future':
+             by_sdo: bool = False, stopping: Optional[Dict[int, int]] = None) -> 'Future':
         """Send ``values`` to ``drive`` (the controlword kept as the drive's commanded one).
 
         Nothing when the drive was read again since ``reads`` (``checks.lost_problem``), or
@@ -347,14 +347,23 @@ class DriveService:
         ``set_halted``) or release it ('') with them, shown only past those checks. A release
         restarts the command timeout in the same step, so no timeout halt comes between (it
         would stay shown, and stop later ones). ``by_sdo``: whatever the PDOs map.
+        ``stopping``: filled with the target that stops the axis in its mode
+        (``safety.stopping_target``), which the frames of this write then repeat; decided
+        with the halt under ``drive.sending``, so no target streamed meanwhile comes between.
         """
         with drive.sending:
+            # Before the lock (the objects' own), as the command timeout's halt reads it.
+            commanded = (drive.objects.value(cia402.TARGET_POSITION) if stopping is not None
+                         else None)
             with self._lock:
                 status = shown(drive)
                 problem = (checks.lost_problem(drive, reads, status, self._bus_down())
                            or (enabled and checks.state_problem(status, True, True)))
                 if problem:
                     return resolved(SdoResult.failed(problem))
+                if stopping is not None:
+                    stopping.update(safety.stopping_target(drive, status, self.settings,
+                                                           commanded))
                 if halt is not None:
                     self.set_halted(drive, halt)
                     if not halt:
@@ -364,6 +373,8 @@ class DriveService:
                     values = {**values, cia402.CONTROLWORD: word}
                 if cia402.CONTROLWORD in values:
                     drive.controlword = values[cia402.CONTROLWORD]
+            if stopping:
+                drive.objects.know(stopping)
             write = drive.objects.write_by_sdo if by_sdo else drive.objects.write
             return write(values, timeout)
 
