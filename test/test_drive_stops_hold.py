@@ -172,6 +172,34 @@ def test_a_short_joint_commands_array_naming_another_devices_joint_is_not_guesse
     assert axis.drive.velocity == 0
 
 
+def test_a_joint_named_twice_in_joint_commands_gets_neither_value(rig, caplog):
+    # Each value would go out in a frame of its own, and the drive would take whichever
+    # came last before its SYNC.
+    axis = rig()
+    axis.enable(CSV)
+    message = JointState(name=[test_drives.JOINT, test_drives.JOINT], velocity=[2.0, 0.3])
+
+    def refused():
+        axis.commands.publish(message)  # again until the subscription matched
+        return 'is named more than once' in caplog.text
+    wait_until(refused, WAIT, 'the message refused, in the log')
+    assert axis.drive.velocity == 0
+    axis.commands.publish(JointState(name=[test_drives.JOINT], velocity=[0.5]))
+    wait_until(lambda: axis.drive.velocity == 500, WAIT, 'a later message taken')
+
+
+def test_joint_commands_for_a_drive_not_heard_say_so(rig, caplog):
+    axis = rig(**{'heartbeat.timeout': 1.0})
+    axis.enable(CSV)
+    axis.drive.stop()  # silent, as when its cable is pulled
+    wait_until(lambda: axis.latest_state() == 'UNKNOWN', WAIT, 'the drive shown UNKNOWN')
+
+    def refused():
+        axis.commands.publish(JointState(name=[test_drives.JOINT], velocity=[0.3]))
+        return 'is not heard (UNKNOWN)' in caplog.text
+    wait_until(refused, WAIT, 'the target refused as not heard, in the log')
+
+
 def test_a_move_on_a_drive_without_profile_position_is_refused_before_anything_is_sent(
         ros_context, start_durand):
     channel = new_channel()

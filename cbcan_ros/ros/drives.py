@@ -217,6 +217,13 @@ class DriveTopics:
         # values of the joints taking it, in the order of the names. Which joint takes which
         # is told by the drives' modes, only when every name is a drive's in a mode that
         # takes a target and the array has as many values as those drives.
+        twice = sorted({name for name in message.name if message.name.count(name) > 1})
+        if twice:
+            # Two values for one drive: whichever frame the drive takes last would win.
+            self._log_refusal(f'joint_commands: joint {twice[0]!r} is named more than once '
+                              f'in the message; which value is its cannot be told, so nothing '
+                              f'of the message was sent')
+            return
         joints = [self._by_name.get(name) for name in message.name]
         fields = [self._field(joint) if joint else None for joint in joints]
         known = all(fields)
@@ -233,11 +240,17 @@ class DriveTopics:
             elif field and known and len(values) == len(taking):
                 index = taking.index(n)
             else:
-                mode = self._service.status(joint.node_id).mode
-                self._log_refusal(f'joint_commands: joint {name!r} (node {joint.node_id}) is '
-                                  f'in {cia402.mode_name(mode)}, which takes '
-                                  f'{field or "no target"}, and which value of the message '
-                                  f'is its cannot be told; nothing was sent', joint.node_id)
+                status = self._service.status(joint.node_id)
+                if field is None and status.state != cia402.OPERATION_ENABLED:
+                    state = ('not heard (UNKNOWN)' if status.state == cia402.UNKNOWN
+                             else f'{status.state}, not enabled')
+                    problem = f'is {state}, so it takes no target'
+                else:
+                    problem = (f'is in {cia402.mode_name(status.mode)}, which takes '
+                               f'{field or "no target"}, and which value of the message is '
+                               f'its cannot be told')
+                self._log_refusal(f'joint_commands: joint {name!r} (node {joint.node_id}) '
+                                  f'{problem}; nothing was sent', joint.node_id)
                 continue
             self._send_target(joint, values[index], 'joint_commands')
 
