@@ -570,3 +570,8 @@ def test_software_file_and_version_are_read_and_the_file_needs_its_version():
         nodes:
           io: {node_id: 5, software_file: io.bin}
         """)
+    # 0 is no program's id: every boot would download software_file again, unchecked.
+    assert 'allowed an integer 1..0xFFFFFFFF' in refused("""
+        nodes:
+          io: {node_id: 5, software_file: io.bin, software_version: 0}
+        """)

@@ -405,6 +405,32 @@ def test_a_boot_downloads_the_software_file_when_the_version_differs(start_duran
         gateway.close()
 
 
+@pytest.mark.parametrize('at_boot', [True, False], ids=['at_boot', 'not_at_boot'])
+def test_a_download_the_next_boot_would_undo_is_refused_unless_it_is_the_software_version(
+        start_durand, tmp_path, ros_context, at_boot):
+    # Its next boot would download software_file over another program (at_boot) or leave
+    # the device unstarted (error H): the goal would succeed and not last.
+    gateway, unit, image = booted(start_durand, tmp_path, at_boot=at_boot)
+    other = tmp_path / 'test_build.bin'
+    other.write_bytes(os.urandom(SMALL))
+    try:
+        boot_of(gateway)
+        held = bytes(unit.image)
+        with GatewayClient(gateway.client_node, '/cbcan', WAIT) as client:
+            for expected in (0, zlib.crc32(other.read_bytes())):
+                with pytest.raises(RequestFailed) as refused:
+                    client.program_download(NODE, str(other), expected_software_id=expected)
+                assert f'software_version 0x{zlib.crc32(image):08X}' in str(refused.value)
+                assert 'nothing was sent' in str(refused.value), refused.value
+                assert bytes(unit.image) == held
+            (tmp_path / 'same.bin').write_bytes(image)
+            done = client.program_download(NODE, str(tmp_path / 'same.bin'),
+                                           expected_software_id=zlib.crc32(image))
+        assert done.software_id == zlib.crc32(image)
+    finally:
+        gateway.close()
+
+
 @pytest.mark.parametrize('letter, options, named', [
     ('H', dict(at_boot=False), 'program_download.at_boot'),
     ('G', dict(plain=True), '0x1F56:1 (software id) could not be read'),

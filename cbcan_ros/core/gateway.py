@@ -210,7 +210,10 @@ class Gateway:
             lambda node_id: self.boot.refusal(node_id) or self.program.refusal(node_id))
         # A device's boot and a program download of it never run at once.
         self.boot.hold_while(self.program.refusal)
-        self.program.refuse_when(self.boot.booting)
+        self.program.refuse_when(lambda request: self.boot.booting(request.node_id)
+                                 or self.boot.program_conflict(
+                                     request.node_id, request.program,
+                                     request.expected_software_id))
         self.program.add_listener(self.boot.program_changed)
         echoing = echoes(config.interface, config.bus_options)
         # Set at every open of the bus: whether the kernel drops the frames the gateway sent.

@@ -394,7 +394,9 @@ def _device(reader: _Reader, name: str, where: str, given: _Keyed,
     fields['scales'] = tuple((key, _scale(reader, *given[key]))
                              for key in SCALE_KEYS if key in given)
     if 'software_version' in given:
-        fields['software_version'] = reader.integer(*given['software_version'], 0,
+        # 0 is no software id (no valid program): a boot could never match it, and it would
+        # download software_file again at every boot without checking what it got.
+        fields['software_version'] = reader.integer(*given['software_version'], 1,
                                                     UNSIGNED32, text=True)
     if 'software_file' in given:
         fields['software_file'] = reader.location(*given['software_file'], reader.folder)

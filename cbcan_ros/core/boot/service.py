@@ -142,6 +142,29 @@ class BootService:
         return (f'node {node_id} is being booted (its boot configuration runs, '
                 f'~/boot_states): download once it has ended') if running else None
 
+    def program_conflict(self, node_id: int, program: int,
+                         expected_software_id: int) -> Optional[str]:
+        """Return why a download of ``program`` to ``node_id`` would not last, or None.
+
+        Its boot checks 0x1F56:1 against the bus description's ``software_version``: any
+        other program 1 would be downloaded over at the next boot (``software_file``,
+        ``program_download.at_boot``) or fail it (error H), leaving the device unstarted.
+        """
+        device = self._devices.get(node_id)
+        wanted = device.plan.software_version if device is not None else None
+        if wanted is None or not device.plan.boot or program != 1 \
+                or expected_software_id == wanted:
+            return None
+        given = (f'expected_software_id 0x{expected_software_id:08X}' if expected_software_id
+                 else 'no expected_software_id')
+        then = ('download its software_file over it' if device.plan.software_file
+                and self._program.at_boot else 'fail (CiA 302-2 error H) and leave it '
+                                                'unstarted')
+        return (f"node {node_id}'s bus description asks for software_version 0x{wanted:08X} "
+                f'and the goal gives {given}: its next boot would {then}. Give '
+                f'expected_software_id 0x{wanted:08X} to download that program, or change '
+                f'software_version (and software_file) in the bus description first')
+
     @property
     def node_ids(self) -> List[int]:
         """Return the devices booted (IGNORED ones included)."""

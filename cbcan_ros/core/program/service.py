@@ -102,11 +102,11 @@ class ProgramService:
         self._lock = threading.Lock()
         self._closing = False
         self._listeners: List[Callable[[], None]] = []
-        # Why a device must not be programmed now (its boot runs), or None.
-        self._booting: Callable[[int], Optional[str]] = lambda node_id: None
+        # Why a download must not run now (its device's boot runs, or would undo it), or None.
+        self._booting: Callable[[ProgramRequest], Optional[str]] = lambda request: None
 
-    def refuse_when(self, booting: Callable[[int], Optional[str]]) -> None:
-        """Refuse a download while ``booting(node_id)`` says why (the boot service's)."""
+    def refuse_when(self, booting: Callable[['ProgramRequest'], Optional[str]]) -> None:
+        """Refuse a download while ``booting(request)`` says why (the boot service's)."""
         self._booting = booting
 
     def add_listener(self, listener: Callable[[], None]) -> None:
@@ -146,7 +146,7 @@ class ProgramService:
                 self._runs[request.node_id] = run
         # Asked once the download is known: a boot starting from now on is held for it, one
         # started before is seen here.
-        booting = None if problem else self._booting(request.node_id)
+        booting = None if problem else self._booting(request)
         if booting:
             with self._lock:
                 self._runs.pop(request.node_id, None)
