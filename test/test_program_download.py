@@ -222,6 +222,20 @@ def test_a_device_that_aborts_mid_image_fails_the_download_with_its_abort_code(r
     assert not setup.device.program_running and setup.device.starts == 0
 
 
+def test_a_device_that_resets_mid_image_ends_the_download_at_its_boot_up(rig):
+    # Once a defect: the rest of the image reached the restarted device, which answered
+    # what it took for unknown commands with aborts; the result named one of those (an
+    # abort of 0000:00), and a boot reading the device next could take another for its
+    # own answer.
+    setup = rig(device=dict(reset_at=20000))
+    result, status, _ = setup.run(node_id=NODE, file=setup.image(size=64 * 1024))
+    assert not result.success and status == GoalStatus.STATUS_ABORTED
+    assert result.message.startswith('DOWNLOADING failed: the device reset (it sent its '
+                                     'boot-up message) at byte'), result.message
+    assert 'download again' in result.message, result.message
+    assert len(setup.device.image) < 64 * 1024, 'the image was not sent on to its end'
+
+
 def test_a_flash_error_fails_the_download_with_the_flash_status(rig):
     setup = rig(device=dict(flash_error=5))
     result, _, _ = setup.run(node_id=NODE, file=setup.image())

@@ -869,3 +869,30 @@ def test_a_flash_busy_past_its_timeout_fails_in_flashing_and_sends_no_start(rig)
     assert result.flash_status == 1, result
     assert control_writes(setup.frames.snapshot(), NODE) == [STOP, CLEAR]
     assert setup.device.starts == 0
+
+
+class WithoutSoftwareId(BootloaderDevice):
+    """A bootloader that answers every read of 0x1F56:1 with an abort (it has none)."""
+
+    def _build_dictionary(self, od) -> None:
+        super()._build_dictionary(od)
+
+        def unreadable() -> int:
+            raise RuntimeError('no software identification')
+        od.set_read_callback(0x1F56, 1, unreadable)
+
+
+def test_a_program_whose_id_cannot_be_read_is_not_said_to_run_id_0(
+        ros_context, start_durand, tmp_path):
+    def device(node_id, kind=DurandDevice, **options):
+        return start_durand(node_id, kind=WithoutSoftwareId if kind is BootloaderDevice
+                            else kind, **options)
+    setup = Rig(device, tmp_path)
+    try:
+        result, status, _ = setup.run(node_id=NODE, file=setup.image())
+        assert result.success and status == GoalStatus.STATUS_SUCCEEDED, result.message
+        assert 'started, its software id not read (0x1F56:1: ' in result.message, \
+            result.message
+        assert result.software_id == 0
+    finally:
+        setup.close()

@@ -89,12 +89,14 @@ class ProgramLink:
     - ``await_boot_up(send, timeout)``: calls ``send()`` (returns why it failed, or ''), then
       whether the device's boot-up came within ``timeout`` s.
     - ``ended()``: why the download must end now (cancel, shutdown, bus down), or ''.
+    - ``boot_ups()``: the device's boot-up messages heard so far (0 where not counted).
     """
 
     sdo: Callable[[Sequence[Access], float], List[SdoResult]]
     stream: Callable[[Access, float, Callable[[int, bool], Optional[str]]], SdoResult]
     await_boot_up: Callable[[Callable[[], str], float], bool]
     ended: Callable[[], str]
+    boot_ups: Callable[[], int] = lambda: 0
 
 
 def read_image(path: str) -> bytes:
@@ -157,6 +159,7 @@ class ProgramDownload:
         self._flash = 0
         self._has_flash_status = True
         self._software_id = 0
+        self._id_text = ''  # what the check found of the software id, for the answer
         self._transfer = ''
         n = program
         self._left = 'unchanged'  # until the first phase begins
@@ -190,8 +193,7 @@ class ProgramDownload:
             self._check()
         except _Failed as failure:
             return self._failed(failure)
-        return self._result(True, f'{self._done_text()}; started, software id '
-                                  f'0x{self._software_id:08X}')
+        return self._result(True, f'{self._done_text()}; started, {self._id_text}')
 
     # The phases.
 
@@ -279,6 +281,13 @@ class ProgramDownload:
         began = time.monotonic()
         told = [began]
         by_block = [False]
+        boot_ups = self._link.boot_ups()
+
+        def reset() -> str:
+            if self._link.boot_ups() == boot_ups:
+                return ''
+            return (f'the device reset (it sent its boot-up message) at byte {self._sent} of '
+                    f'{total}: it took no more of the image')
 
         def written(position: int, block: bool) -> Optional[str]:  # after every segment
             self._sent = position
@@ -288,11 +297,16 @@ class ProgramDownload:
                 told[0] = now
                 self._feedback(Progress(DOWNLOADING, position, total,
                                         position / max(now - began, 1e-6)))
-            return self._link.ended() or None
+            # The rest of the image would reach the restarted device as commands it does
+            # not know, each answered with an abort that a later request could take for its
+            # own answer.
+            return self._link.ended() or reset() or None
 
         result = self._link.stream(Access(self.node_id, PROGRAM_DATA, self._program, True,
                                           self._image),
                                    self._settings.answer_timeout, written)
+        if not result.success and reset():
+            raise _Failed(reset(), 0)
         if not result.success:
             reason = self._link.ended()
             if reason and result.abort_code in (abort_codes.LOCAL_CONTROL,
@@ -348,8 +362,11 @@ class ProgramDownload:
             if self._expected:
                 raise _Failed(f'0x1F56:{self._program} (software id) could not be read after '
                               f'the start: {result.message}', result.abort_code)
+            self._id_text = (f'its software id not read (0x1F56:{self._program}: '
+                             f'{result.message})')
             return
         self._software_id = _number(result.data)
+        self._id_text = f'software id 0x{self._software_id:08X}'
         if self._expected and self._software_id != self._expected:
             self._left = (f'program {self._program} started, running software id '
                           f'0x{self._software_id:08X}')

@@ -263,7 +263,11 @@ class ProgramService:
                     run.changed.wait(left)
                 return run.boot_ups != seen
 
-        return ProgramLink(sdo, stream, await_boot_up, ended)
+        def boot_ups() -> int:
+            with run.changed:
+                return run.boot_ups
+
+        return ProgramLink(sdo, stream, await_boot_up, ended, boot_ups)
 
     def _tell(self) -> None:
         for listener in self._listeners:

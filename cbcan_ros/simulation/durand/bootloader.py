@@ -13,7 +13,9 @@
   after a clear, ``flash_time`` after an image arrived), then the error code in bits 1..7.
 
 Faults to play, as constructor options: ``abort_at`` (the device aborts the download with
-0x08000020 once that many bytes arrived), ``flash_error`` (the code 0x1F57 reports after
+0x08000020 once that many bytes arrived), ``reset_at`` (the device resets, sending its
+boot-up message, once that many bytes arrived; what follows of the image reaches the
+restarted device), ``flash_error`` (the code 0x1F57 reports after
 flashing), ``comes_back`` False (the new program never sends anything: a device that does not
 come back). The program and its state survive resets, as a bootloader's flash does.
 """
@@ -54,6 +56,9 @@ class _ImageWriter:
         device.image += data
         if device.abort_at is not None and len(device.image) >= device.abort_at:
             raise RuntimeError('simulated fault: the flash takes no more')  # 0x08000020
+        if device.reset_at is not None and len(device.image) >= device.reset_at:
+            device.reset_at = None
+            device.reset_now()
 
     def on_finish(self) -> None:
         self._device.flashed()
@@ -69,8 +74,8 @@ class BootloaderDevice(DurandDevice):
 
     def __init__(self, node_id: int, *args, image: bytes = b'firmware 1.0',
                  flash_time: float = 0.2, clear_time: float = 0.1,
-                 abort_at: Optional[int] = None, flash_error: int = 0,
-                 comes_back: bool = True, **options):
+                 abort_at: Optional[int] = None, reset_at: Optional[int] = None,
+                 flash_error: int = 0, comes_back: bool = True, **options):
         super().__init__(node_id, *args, **options)
         self.image = bytearray(image)
         self.program_running = True          # the program runs (0x1F51 reads 1)
@@ -78,6 +83,7 @@ class BootloaderDevice(DurandDevice):
         self.flash_time = flash_time
         self.clear_time = clear_time
         self.abort_at = abort_at
+        self.reset_at = reset_at
         self.flash_error = flash_error
         self.comes_back = comes_back
         self.starts = 0              # start commands taken
@@ -149,6 +155,11 @@ class BootloaderDevice(DurandDevice):
         if not self.comes_back:
             self._network.muted = True  # the new program crashed before saying anything
             return
+        self._boot(WHOLE_DICTIONARY, durand_reset=self.node.nmt.reset)
+
+    def reset_now(self) -> None:
+        """Reset as a power glitch or watchdog does: the boot-up message, the program gone."""
+        self.program_running = False
         self._boot(WHOLE_DICTIONARY, durand_reset=self.node.nmt.reset)
 
     def _flash_status(self) -> int:
