@@ -44,6 +44,7 @@ from test_drive_safety import (
 
 from cbcan_ros.core.bus import BusStatus
 from cbcan_ros.core.drives.cycle import FeedbackCycle
+from cbcan_ros.core.pdo import sync as sync_module
 from cbcan_ros.core.pdo.sync import SyncProducer
 from cbcan_ros.msg import PdoEntry
 from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
@@ -904,6 +905,49 @@ def test_no_sync_of_the_thread_comes_between_frames_that_must_not_be_split():
         producer.stop()
     first, second = bus.order.index('first'), bus.order.index('second')
     assert second == first + 1, f'SYNCs between the frames: {bus.order[first:second]}'
+
+
+def test_one_messages_frames_are_all_sent_at_once_or_all_after_the_sync(monkeypatch):
+    # Once a defect: whether a stream's frame went at once or after the next SYNC was decided
+    # frame by frame, so a command message for several drives handled across the cut-off (a
+    # quarter period before the SYNC), or across the SYNC itself, had its first drives take
+    # their targets a cycle before the others (red team: 10-13 % of messages, loaded).
+    monkeypatch.setattr(sync_module, 'ONE_CYCLE_WAIT', ANSWER)
+    period = 0.4
+    bus = _CountingBus()
+    producer = sending_sync(bus, period)
+    try:
+        wait_until(lambda: bus.order, ANSWER, 'the first SYNC')
+        wait_until(producer.open_for_rpdos, ANSWER, 'the cycle open for RPDOs')
+        syncs = len(bus.order)
+        with producer.one_cycle():
+            bus.order.append('first drive')
+            # The message is handled slowly: past the cut-off, past the SYNC's moment.
+            due = producer.next_point(0.0)
+            wait_until(lambda: time.monotonic() > due + 0.01, ANSWER, 'the SYNC due')
+            assert producer.open_for_rpdos(), 'the decision changed within the message'
+            bus.order.append('last drive')
+        # Outside, for another caller, the cycle of that SYNC is closed until it went out.
+        wait_until(lambda: len(bus.order) > syncs + 2, ANSWER, 'the SYNC sent after them')
+    finally:
+        producer.stop()
+    assert bus.order[syncs:syncs + 3] == ['first drive', 'last drive', 'SYNC'], bus.order
+
+
+def test_a_message_begun_past_the_cut_off_waits_whole_for_the_sync():
+    period = 0.4
+    bus = _CountingBus()
+    producer = sending_sync(bus, period)
+    try:
+        wait_until(lambda: bus.order, ANSWER, 'the first SYNC')
+        wait_until(lambda: not producer.open_for_rpdos(), ANSWER, 'past the cut-off')
+        with producer.one_cycle():
+            # Back in the open part of the next cycle, the message still holds its decision.
+            wait_until(lambda: time.monotonic() > producer.next_point(0.0) - period + 0.01
+                       and bus.order.count('SYNC') >= 2, ANSWER, 'the next cycle begun')
+            assert not producer.open_for_rpdos(), 'the decision changed within the message'
+    finally:
+        producer.stop()
 
 
 def test_a_frame_waiting_for_a_sync_that_was_skipped_waits_for_the_next_one_sent():

@@ -22,7 +22,7 @@ import math
 import re
 import threading
 import time
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
 
 from rclpy.action import ActionServer, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -212,21 +212,32 @@ class DriveTopics:
         self._send_target(self._joints[node_id], message.data, f'node_{node_id}/target')
 
     def _on_joint_commands(self, message: JointState) -> None:
-        # ros2_control's topic-based hardware interface fills each array only for the joints
-        # that have that command interface: with mixed interfaces, a shorter array holds the
-        # values of the joints taking it, in the order of the names. Which joint takes which
-        # is told by the drives' modes, only when every name is a drive's in a mode that
-        # takes a target and the array has as many values as those drives.
+        targets = self._targets_of(message)
+        # One message, one SYNC cycle: no drive takes its target a cycle after another.
+        with self._service.one_cycle():
+            for joint, value in targets:
+                self._send_target(joint, value, 'joint_commands')
+
+    def _targets_of(self, message: JointState) -> List[Tuple[Joint, float]]:
+        """Return the (joint, value) pairs of a ``joint_commands`` message; log the rest.
+
+        ros2_control's topic-based hardware interface fills each array only for the joints
+        that have that command interface: with mixed interfaces, a shorter array holds the
+        values of the joints taking it, in the order of the names. Which joint takes which
+        is told by the drives' modes, only when every name is a drive's in a mode that
+        takes a target and the array has as many values as those drives.
+        """
         twice = sorted({name for name in message.name if message.name.count(name) > 1})
         if twice:
             # Two values for one drive: whichever frame the drive takes last would win.
             self._log_refusal(f'joint_commands: joint {twice[0]!r} is named more than once '
                               f'in the message; which value is its cannot be told, so nothing '
                               f'of the message was sent')
-            return
+            return []
         joints = [self._by_name.get(name) for name in message.name]
         fields = [self._field(joint) if joint else None for joint in joints]
         known = all(fields)
+        targets = []
         for n, (name, joint, field) in enumerate(zip(message.name, joints, fields,
                                                      strict=True)):
             if joint is None:
@@ -236,23 +247,24 @@ class DriveTopics:
             values = getattr(message, field) if field else ()
             taking = [k for k, other in enumerate(fields) if other == field]
             if field and len(values) == len(message.name):
-                index = n
+                targets.append((joint, values[n]))
             elif field and known and len(values) == len(taking):
-                index = taking.index(n)
+                targets.append((joint, values[taking.index(n)]))
             else:
-                status = self._service.status(joint.node_id)
-                if field is None and status.state != cia402.OPERATION_ENABLED:
-                    state = ('not heard (UNKNOWN)' if status.state == cia402.UNKNOWN
-                             else f'{status.state}, not enabled')
-                    problem = f'is {state}, so it takes no target'
-                else:
-                    problem = (f'is in {cia402.mode_name(status.mode)}, which takes '
-                               f'{field or "no target"}, and which value of the message is '
-                               f'its cannot be told')
                 self._log_refusal(f'joint_commands: joint {name!r} (node {joint.node_id}) '
-                                  f'{problem}; nothing was sent', joint.node_id)
-                continue
-            self._send_target(joint, values[index], 'joint_commands')
+                                  f'{self._takes_none(joint, field)}; nothing was sent',
+                                  joint.node_id)
+        return targets
+
+    def _takes_none(self, joint: Joint, field: Optional[str]) -> str:
+        """Return why no value of a message can be the joint's target, for the log."""
+        status = self._service.status(joint.node_id)
+        if field is None and status.state != cia402.OPERATION_ENABLED:
+            state = ('not heard (UNKNOWN)' if status.state == cia402.UNKNOWN
+                     else f'{status.state}, not enabled')
+            return f'is {state}, so it takes no target'
+        return (f'is in {cia402.mode_name(status.mode)}, which takes {field or "no target"}, '
+                f'and which value of the message is its cannot be told')
 
     def _field(self, joint: Joint) -> Optional[str]:
         """Return the JointState field the drive's present mode takes, None for none."""

@@ -288,6 +288,13 @@ class DriveService:
         return future, lambda: self._runner.call_soon(
             lambda: self._commands.cancel(drive, 'cancelled', halt=True, token=token))
 
+    def one_cycle(self):
+        """Return a context within which the targets given reach the drives in one SYNC cycle.
+
+        For the targets of one command message (``SyncProducer.one_cycle``).
+        """
+        return self.sync.one_cycle()
+
     def target(self, node_id: int, value: float) -> DriveResult:
         """Send ``value`` as the target of the drive's present mode, in the drive's units.
 

@@ -22,13 +22,14 @@ surely in, to repeat a stream's frame in a cycle its caller left without one.
 """
 
 from collections import deque
+import contextlib
 from dataclasses import dataclass
 import logging
 import math
 import statistics
 import threading
 import time
-from typing import Callable, List, Optional, Tuple
+from typing import Callable, Iterator, List, Optional, Tuple
 
 import can
 
@@ -46,6 +47,9 @@ GRID_SAMPLES = 15
 # overtake it, early enough for the synchronous window of any device. A frame of a stream
 # is sent at once unless this fraction or less of the period is left before the next SYNC.
 RPDO_OFFSET = 0.25
+# The longest the thread's SYNC waits for the frames of one cycle being written (``one_cycle``):
+# a command message's few frames, within the SYNC period error devices take.
+ONE_CYCLE_WAIT = 0.0005
 
 
 def sync_frames(counter_overflow: int) -> List[can.Message]:
@@ -126,6 +130,10 @@ class SyncProducer:
         self._last_heard: Optional[float] = None
         self._intervals: deque = deque(maxlen=PERIOD_SAMPLES)
         self._thread = threading.Thread(target=self._run, name='sync', daemon=True)
+        # Each thread's decision within ``one_cycle`` (None outside), and how many threads
+        # within it are writing frames that go before the next SYNC.
+        self._one_cycle = threading.local()
+        self._cycle_writers = 0
 
     @property
     def producing(self) -> bool:
@@ -179,14 +187,43 @@ class SyncProducer:
         """
         return self._burst
 
+    @contextlib.contextmanager
+    def one_cycle(self) -> Iterator[None]:
+        """Have the synchronous frames written within reach the devices in one SYNC cycle.
+
+        The targets of one command message for several drives: whether a stream's frame goes
+        at once or waits for the SYNC (``open_for_rpdos``) is decided once, on entry, for all
+        of them, not frame by frame as the cut-off passes; and while the ones going at once
+        are written, this thread's SYNC waits for them (``ONE_CYCLE_WAIT`` at most), so it
+        does not come between two of them.
+        """
+        if getattr(self._one_cycle, 'open', None) is not None:
+            yield  # within one already: its decision holds
+            return
+        with self._lock:
+            open_now = self.open_for_rpdos()
+            self._cycle_writers += open_now
+        self._one_cycle.open = open_now
+        try:
+            yield
+        finally:
+            self._one_cycle.open = None
+            if open_now:
+                with self._lock:
+                    self._cycle_writers -= 1
+                    self._lock.notify_all()
+
     def open_for_rpdos(self) -> bool:
         """Return whether a synchronous RPDO sent now is applied at the next SYNC.
 
         True from a SYNC until a quarter period before the next one, while SYNC is produced.
         When this thread sends SYNC, from the moment the cycle's SYNC went out, however late:
         a frame sent before it would be applied by it, a cycle early, and leave the cycle
-        after it without a frame.
+        after it without a frame. Within ``one_cycle``, what it was on entry.
         """
+        decided = getattr(self._one_cycle, 'open', None)
+        if decided is not None:
+            return decided
         with self._lock:
             task = self._task
             if task is None:
@@ -290,6 +327,9 @@ class SyncProducer:
                 self._lock.wait(max(due - now, 0.0))
                 if time.monotonic() < due or self._task is not task:
                     continue
+                if sync == due and not self._frames_of_the_cycle_written(due + ONE_CYCLE_WAIT,
+                                                                         task):
+                    continue
                 callbacks = []
                 if after == due:
                     callbacks, self._after_sync = self._after_sync, []
@@ -310,6 +350,18 @@ class SyncProducer:
                             self._note_sent(task, sent_at)
                             callbacks, self._after_sync = callbacks + self._after_sync, []
             _run_all(callbacks)
+
+    def _frames_of_the_cycle_written(self, until: float, task: _ThreadTask) -> bool:
+        """Wait until ``one_cycle``'s frames before this SYNC are out, or ``until`` (lock held).
+
+        Return False when the task ended or shutdown began meanwhile.
+        """
+        while self._cycle_writers and self._task is task and not self._closing:
+            left = until - time.monotonic()
+            if left <= 0:
+                break
+            self._lock.wait(left)
+        return self._task is task and not self._closing
 
     def _note_sent(self, task: _ThreadTask, stamp: float) -> None:
         """Measure the period between the thread's SYNCs (lock held).
