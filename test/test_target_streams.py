@@ -465,6 +465,36 @@ def test_the_feedback_cycle_beats_once_a_sync_cycle_when_the_syncs_lead_the_grid
     assert beats_per_sync_cycle(lead=0.04) == [1] * 5
 
 
+def test_a_beat_tells_its_cycles_feedback_though_the_next_cycles_came_before_it_ran():
+    # Once a defect (red team, loaded machine): the beat read the drives when it ran, and a
+    # TPDO of the next cycle taken meanwhile mixed in: joint_states showed positions of two
+    # cycles.
+    shown = {'shoulder': 0, 'elbow': 0}
+    beats, holding, release = [], threading.Event(), threading.Event()
+    cycle = FeedbackCycle(10.0, lambda: cycle.expect(2), snapshot=lambda: dict(shown))
+
+    def listener():
+        beats.append(cycle.beat_snapshot)
+        if len(beats) == 1:  # the drive cycle's thread busy while the frames come
+            holding.set()
+            release.wait(ANSWER)
+    cycle.add_listener(listener)
+    cycle.start()
+    try:
+        wait_until(holding.is_set, ANSWER, 'the first beat under way')
+        for joint in shown:  # a cycle's two TPDOs
+            shown[joint] = 1
+            cycle.took()
+        shown['shoulder'] = 2  # the next cycle's first, before the beat ran
+        cycle.took()
+        release.set()
+        wait_until(lambda: len(beats) >= 2, ANSWER, 'the beat of the cycle')
+    finally:
+        release.set()
+        cycle.stop()
+    assert beats[1] == {'shoulder': 1, 'elbow': 1}, beats
+
+
 # 5. A drive that stopped by itself.
 
 def statusword_of(message) -> Optional[int]:

@@ -191,7 +191,7 @@ class DriveTopics:
         if (self._joint_states is None or self._refusal() is not None
                 or not self._joint_states.get_subscription_count()):
             return  # volatile: a message nobody receives is not worth building
-        statuses = self._service.statuses()
+        statuses = self._service.cycle_statuses()
         newest = max(status.received for status in statuses)
         message = JointState()
         message.header.stamp = (stamp_of(newest) if newest

@@ -9,7 +9,9 @@ While the gateway produces SYNC, the beats follow it: one a SYNC cycle, as soon 
 synchronous TPDO the drives answer that SYNC with is in (``took``); without them, half a
 period after the SYNC (or after the moment they came the cycle before). So
 ``~/joint_states`` carries each cycle's feedback once, early enough for a controller's answer
-to reach the drives before the next SYNC.
+to reach the drives before the next SYNC. What the drives showed when a cycle's last TPDO
+came is taken then, on the receiving thread (``snapshot``), and is what that beat tells
+(``beat_snapshot``): TPDOs of the next cycle taken before the beat runs do not mix in.
 """
 
 from concurrent.futures import Future
@@ -77,20 +79,27 @@ class FeedbackCycle:
 
     ``sync_point(fraction)``: the next time that fraction of a period after a SYNC, None while
     no SYNC is produced (``SyncProducer.next_point``); the beats then follow the SYNC.
+    ``snapshot()``: what the drives show, taken when a cycle's last TPDO is in.
     """
 
     def __init__(self, period: float, tick: Callable[[], None],
-                 sync_point: Callable[[float], Optional[float]] = lambda _fraction: None):
+                 sync_point: Callable[[float], Optional[float]] = lambda _fraction: None,
+                 snapshot: Callable[[], object] = lambda: None):
         self._period = period
         self._tick = tick
         self._sync_point = sync_point
+        self._snapshot = snapshot
         self._listeners: List[Callable[[], None]] = []
         self._stopped = False
         self._wake = threading.Condition()
         self._expected = 0  # synchronous TPDOs a SYNC cycle brings (0: not known)
         self._arrived = 0   # of them, in the cycle that ends at _cycle_end
         self._cycle_end = 0.0
-        self._beaten = -1.0  # the _cycle_end of the cycle last beaten
+        self._completed = 0  # cycles whose TPDOs all came in
+        self._beaten = 0     # the last of them beaten
+        self._taken = None   # the snapshot of the cycle completed last
+        # The snapshot of the beat running (its cycle's), None for a beat without one.
+        self.beat_snapshot = None
         self._thread = threading.Thread(target=self._run, name='drive cycle', daemon=True)
 
     def add_listener(self, listener: Callable[[], None]) -> None:
@@ -113,18 +122,29 @@ class FeedbackCycle:
             self._expected = frames
 
     def took(self) -> None:
-        """Count a synchronous TPDO in; the last one of a cycle brings the beat forward."""
+        """Count a synchronous TPDO in; the last one of a cycle brings the beat forward.
+
+        The TPDO after a cycle's last one begins the next cycle, also when a receiving thread
+        held up takes both cycles' TPDOs in one burst.
+        """
         now = time.monotonic()
         with self._wake:
             if now >= self._cycle_end:  # the first of a new cycle
                 self._arrived = 0
                 self._cycle_end = self._sync_point(0.0) or now + self._period
             self._arrived += 1
-            if self._arrived == self._expected:
+            complete = 0 < self._expected <= self._arrived
+            if complete:
+                self._arrived, self._cycle_end = 0, now
+        if complete:
+            taken = self._snapshot()  # no lock of this cycle held: the drives' lock is taken
+            with self._wake:
+                self._completed += 1
+                self._taken = taken
                 self._wake.notify()
 
     def _all_in(self) -> bool:
-        return (0 < self._expected <= self._arrived) and self._beaten != self._cycle_end
+        return self._completed != self._beaten
 
     def _run(self) -> None:
         due = time.monotonic()
@@ -139,7 +159,8 @@ class FeedbackCycle:
                 if self._stopped:
                     return
                 all_in = self._all_in()
-                self._beaten = self._cycle_end
+                self._beaten = self._completed
+                self.beat_snapshot = self._taken if all_in else None
             beat_at = time.monotonic()
             for step in [self._tick, *self._listeners]:
                 try:

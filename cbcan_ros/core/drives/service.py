@@ -110,7 +110,8 @@ class DriveService:
         self._targets_failing: set = set()
         self._checks = checks.RequestChecks(self._drives, self._lock, write_protection,
                                             bus_down, lambda: self._closing)
-        self._cycle = FeedbackCycle(settings.feedback_period, self._tick, sync.next_point)
+        self._cycle = FeedbackCycle(settings.feedback_period, self._tick, sync.next_point,
+                                    self.statuses)
         if self._drives:
             pdo.add_listener(self._on_pdo)
             monitor.add_listener(self._on_node_states)
@@ -150,6 +151,15 @@ class DriveService:
         """Return every drive's status, by node id."""
         with self._lock:
             return [shown(drive) for drive in self._drives.values()]
+
+    def cycle_statuses(self) -> List[DriveStatus]:
+        """Return every drive's status as the feedback cycle's beat tells it, by node id.
+
+        In a beat that came with a SYNC cycle's last TPDO, the statuses as they were then
+        (every drive's feedback of that cycle, none of the next); else as they are now.
+        """
+        taken = self._cycle.beat_snapshot
+        return taken if taken is not None else self.statuses()
 
     def command_timeouts(self, node_id: int) -> int:
         """Return how often the command timeout halted drive ``node_id``."""
