@@ -210,8 +210,8 @@ class ProgramDownload:
         # One at a time: a caller's batch may stop at the first failure, and 0x1F50 fails.
         results = [self._sdo([read], self._settings.answer_timeout)[0] for read in reads]
         reason = self._link.ended()
-        if reason:
-            raise _Failed(f'{reason}; {NOTHING_SENT}', refused=True)
+        if reason:  # a cancel, not a refusal: the action ends CANCELED
+            raise _Failed(f'{reason}; {NOTHING_SENT}')
         for access, result in zip(reads[:2], results[:2], strict=True):
             if result.abort_code in NO_SUCH_OBJECT:
                 raise _Failed(f'node {self.node_id} has no 0x{access.index:04X}:{n} '
