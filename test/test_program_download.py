@@ -419,6 +419,23 @@ def test_a_boot_downloads_the_software_file_when_the_version_differs(start_duran
         gateway.close()
 
 
+def test_a_boot_downloading_the_software_file_shows_the_device_as_being_programmed(
+        start_durand, tmp_path, ros_context):
+    # Once a defect: only ~/program_download's downloads were shown in node_states.
+    gateway, unit, image = booted(start_durand, tmp_path, device=dict(flash_time=0.5))
+    try:
+        def shown_programming():
+            with gateway._states_lock:
+                return any(n.node_id == NODE and n.programming
+                           for message in gateway.states for n in message.nodes)
+        wait_until(shown_programming, WAIT, 'node_states showing the device being programmed')
+        assert boot_of(gateway).state == 'BOOTED'
+        wait_until(lambda: not any(n.programming for n in gateway.states[-1].nodes), WAIT,
+                   'node_states showing the programming ended')
+    finally:
+        gateway.close()
+
+
 @pytest.mark.parametrize('at_boot', [True, False], ids=['at_boot', 'not_at_boot'])
 def test_a_download_the_next_boot_would_undo_is_refused_unless_it_is_the_software_version(
         start_durand, tmp_path, ros_context, at_boot):

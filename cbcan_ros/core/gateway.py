@@ -32,7 +32,7 @@ from .lss.frames import is_all_waiting, probe_wait
 from .lss.master import LssMaster
 from .pdo.service import PdoService
 from .pdo.sync import SyncProducer
-from .program.download import ProgramSettings
+from .program.download import ProgramSettings, Progress
 from .program.service import ProgramService
 from .python_can_gaps.own_frames import drop_own_frames
 from .python_can_gaps.receive_buffer import deepen_receive_buffer
@@ -239,6 +239,10 @@ class Gateway:
     def bus_status(self) -> BusStatus:
         """Return whether the bus is up, why not, and how often it was reopened."""
         return self.bus.status
+
+    def programming(self) -> Dict[int, Progress]:
+        """Return the devices being programmed now (an action's download or a boot's)."""
+        return {**self.boot.programming(), **self.program.programming()}
 
     def sdo_statistics(self) -> Dict[int, SdoStatistics]:
         """Return the SDO statistics of every device that was sent a request, by node id."""

@@ -216,7 +216,7 @@ class Diagnostics:
         sdo = gateway.sdo_statistics()
         pdo = gateway.pdo.statistics()
         boots = {state.node_id: state for state in gateway.boot.states()}
-        programming = gateway.program.programming()
+        programming = gateway.programming()
         statuses = [self._device_status(node_id,
                                         heartbeats.get(node_id) or gateway.monitor.status(node_id),
                                         emergencies.get(node_id) or EmcyStatus(node_id),

@@ -229,6 +229,7 @@ class GatewayInterface:
         self._states_changed = PublishOnChange(self._publish_states, 'node states')
         self.gateway.monitor.add_listener(self._states_changed.changed)
         self.gateway.program.add_listener(self._states_changed.changed)
+        self.gateway.boot.add_listener(self._states_changed.changed)  # a boot's download
         self._pdo_topics = PdoTopics(node, self.gateway.pdo, self._on_tpdo_message,
                                      lambda: self.active)
         self._diagnostics = Diagnostics(node, self.gateway, parameters.joints())
@@ -487,7 +488,7 @@ class GatewayInterface:
             if not self.active or self._states_publisher is None:
                 return
             message = NodeStates(stamp=self._node.get_clock().now().to_msg())
-            programming = self.gateway.program.programming()
+            programming = self.gateway.programming()
             message.nodes = [
                 NodeState(node_id=status.node_id, state=status.state,
                           state_name=status.state_name,

@@ -19,6 +19,7 @@ from ..program.download import (
     ProgramDownload,
     ProgramLink,
     ProgramSettings,
+    Progress,
     read_image,
     SOFTWARE_ID,
 )
@@ -76,6 +77,8 @@ class BootLink:
     - ``read_pdos()``: reads the device's PDO mapping again; returns why it failed, or ''.
     - ``stream(access, answer_within, written)``: a program image, as
       :class:`~cbcan_ros.core.program.download.ProgramLink` has it.
+    - ``programming(progress)``: the progress of the program download this boot runs, None
+      once it has ended (the device is shown as being programmed meanwhile).
     """
 
     sdo: Callable[[Sequence[Access], float], List[SdoResult]]
@@ -85,6 +88,7 @@ class BootLink:
     await_heartbeat: Callable[[float], bool]
     read_pdos: Callable[[], str]
     stream: Callable[[Access, float, Callable[[int, bool], Optional[str]]], SdoResult]
+    programming: Callable[[Optional[Progress]], None] = lambda progress: None
 
 
 @dataclass(frozen=True)
@@ -268,8 +272,11 @@ class DeviceBoot:
         link = self._link
         download = ProgramDownload(plan.node_id, image, 1, plan.software_version, True,
                                    ProgramLink(link.sdo, link.stream, link.await_boot_up,
-                                               link.ended), self._program)
-        outcome = download.run()
+                                               link.ended), self._program, link.programming)
+        try:
+            outcome = download.run()
+        finally:
+            link.programming(None)
         self._check_ended()
         if not outcome.success:
             raise BootFailed('G' if outcome.refused else 'I',

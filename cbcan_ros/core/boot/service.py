@@ -21,7 +21,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from .. import nmt
 from ..bus import BusStatus, prompt
-from ..program.download import ProgramSettings
+from ..program.download import ProgramSettings, Progress
 from ..sdo.request_queue import answer, resolved
 from .plan import BootSettings, DevicePlan
 from .process import BootEnded, BootFailed, BootLink, DeviceBoot
@@ -116,6 +116,7 @@ class BootService:
         self._listeners: List[Callable[[], None]] = []
         # Why a device must not be booted now (a program download is writing it), or None.
         self._programming: Callable[[int], Optional[str]] = lambda node_id: None
+        self._downloads: Dict[int, Progress] = {}  # the boots' own program downloads
 
     def hold_while(self, programming: Callable[[int], Optional[str]]) -> None:
         """Hold every boot of a device for which ``programming(node_id)`` says why not.
@@ -141,6 +142,11 @@ class BootService:
             running = device is not None and (device.running or device.state.state == BOOTING)
         return (f'node {node_id} is being booted (its boot configuration runs, '
                 f'~/boot_states): download once it has ended') if running else None
+
+    def programming(self) -> Dict[int, Progress]:
+        """Return the devices a boot is programming now (software_file), with its progress."""
+        with self._lock:
+            return dict(self._downloads)
 
     def program_conflict(self, node_id: int, program: int,
                          expected_software_id: int) -> Optional[str]:
@@ -545,8 +551,19 @@ class BootService:
         def stream(access, answer_within, written):
             return self._sdo_stream(access, answer_within, written).result()
 
+        def programming(progress: Optional[Progress]) -> None:
+            with self._lock:
+                began = node_id not in self._downloads
+                if progress is None:
+                    finished = self._downloads.pop(node_id, None) is not None
+                else:
+                    self._downloads[node_id] = progress
+            if (progress is not None and began) or (progress is None and finished):
+                for listener in self._listeners:  # shown as being programmed, or no more
+                    listener()
+
         return BootLink(sdo, nmt_send, ended, await_boot_up, await_heartbeat, read_pdos,
-                        stream)
+                        stream, programming)
 
     @prompt
     def _on_heartbeat(self, can_id: int, data: bytearray, _timestamp: float) -> None:
