@@ -134,6 +134,7 @@ class SyncProducer:
         # within it are writing frames that go before the next SYNC.
         self._one_cycle = threading.local()
         self._cycle_writers = 0
+        self._sync_held = False  # the thread's SYNC waits for them
 
     @property
     def producing(self) -> bool:
@@ -211,7 +212,8 @@ class SyncProducer:
             if open_now:
                 with self._lock:
                     self._cycle_writers -= 1
-                    self._lock.notify_all()
+                    if self._sync_held:  # most messages end long before their SYNC
+                        self._lock.notify_all()
 
     def open_for_rpdos(self) -> bool:
         """Return whether a synchronous RPDO sent now is applied at the next SYNC.
@@ -360,7 +362,9 @@ class SyncProducer:
             left = until - time.monotonic()
             if left <= 0:
                 break
+            self._sync_held = True
             self._lock.wait(left)
+            self._sync_held = False
         return self._task is task and not self._closing
 
     def _note_sent(self, task: _ThreadTask, stamp: float) -> None:
