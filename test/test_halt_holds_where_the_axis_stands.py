@@ -37,15 +37,24 @@ def _sdo_write_through_the_gateway(axis, position: int) -> None:
     assert answer.success, answer.message
 
 
-@pytest.mark.parametrize('jog', [_sdo_write_through_the_gateway, _sdo_write_by_another_master],
-                         ids=['gateway_sdo_write', 'another_master'])
-def test_halt_in_csp_holds_the_axis_where_it_stands_not_at_an_older_target(rig, jog):  # noqa: F811
+def _streamed_300_on(rig):  # noqa: F811
+    """Return (the rig, where its axis started): enabled in CSP and streamed 300 counts on.
+
+    Its drive ignores the halt bit in CSP (vendors), so a halt also sets a stopping target.
+    """
     axis = rig(**{'drives.command_timeout': 0.0})
-    axis.drive.halts_in_cyclic_modes = False  # bit 8 without function in CSP (vendors)
+    axis.drive.halts_in_cyclic_modes = False
     axis.enable(CSP)
     start = axis.drive.position
     axis.target.publish(Float64(data=(start + 300) / SCALE))
     wait_until(lambda: axis.drive.position == start + 300, WAIT, 'the drive 300 on')
+    return axis, start
+
+
+@pytest.mark.parametrize('jog', [_sdo_write_through_the_gateway, _sdo_write_by_another_master],
+                         ids=['gateway_sdo_write', 'another_master'])
+def test_halt_in_csp_holds_the_axis_where_it_stands_not_at_an_older_target(rig, jog):  # noqa: F811
+    axis, start = _streamed_300_on(rig)
     # The axis is then moved on by a target that did not come through the drive service.
     jog(axis, start + 300 + JOG)
     wait_until(lambda: axis.drive.position == start + 300 + JOG, WAIT, 'the drive jogged')
@@ -84,12 +93,7 @@ def test_a_target_streamed_while_the_halt_decides_where_to_stop_does_not_move_th
     lock. A target streamed in that instant went out, the halt's frames then put the older
     stopping target back, and the axis stepped forward and back.
     """
-    axis = rig(**{'drives.command_timeout': 0.0})
-    axis.drive.halts_in_cyclic_modes = False  # bit 8 without function in CSP (vendors)
-    axis.enable(CSP)
-    start = axis.drive.position
-    axis.target.publish(Float64(data=(start + 300) / SCALE))
-    wait_until(lambda: axis.drive.position == start + 300, WAIT, 'the drive 300 on')
+    axis, start = _streamed_300_on(rig)
     service = axis.gateway.node.gateway.drives
     streamed = []
     deciding = safety.stopping_target
