@@ -445,8 +445,8 @@ def beats_per_sync_cycle(lead: float, period: float = 0.2) -> list:
     try:
         for sync in syncs:
             threading.Event().wait(max(0.0, sync - time.monotonic()))
-            cycle.took()
-            cycle.took()
+            cycle.took('statusword TPDO')
+            cycle.took('position TPDO')
     finally:
         cycle.stop()
     return [sum(1 for beat in beats if first <= beat < second)
@@ -484,15 +484,61 @@ def test_a_beat_tells_its_cycles_feedback_though_the_next_cycles_came_before_it_
         wait_until(holding.is_set, ANSWER, 'the first beat under way')
         for joint in shown:  # a cycle's two TPDOs
             shown[joint] = 1
-            cycle.took()
+            cycle.took(joint)
         shown['shoulder'] = 2  # the next cycle's first, before the beat ran
-        cycle.took()
+        cycle.took('shoulder')
         release.set()
         wait_until(lambda: len(beats) >= 2, ANSWER, 'the beat of the cycle')
     finally:
         release.set()
         cycle.stop()
     assert beats[1] == {'shoulder': 1, 'elbow': 1}, beats
+
+
+def test_a_cycles_late_tpdos_taken_in_one_burst_with_the_next_cycles_complete_each_in_turn():
+    # Red team: a receive thread held up past the next SYNC took the rest of one cycle's
+    # TPDOs with the next cycle's; counted by time, the late ones and the next cycle's first
+    # made one "cycle", and joint_states showed drives of both.
+    drives = range(1, 9)
+    shown = dict.fromkeys(drives, 3)
+    beats = []
+    held = [threading.Event(), threading.Event()]  # the first two beats: set when held
+    released = [threading.Event(), threading.Event()]
+    # The next SYNC always 50 ms ahead: a thread held up longer is past it.
+    cycle = FeedbackCycle(10.0, lambda: cycle.expect(16), lambda _: time.monotonic() + 0.05,
+                          snapshot=lambda: dict(shown))
+
+    def listener():  # the drive cycle's thread busy while the frames come
+        beats.append(cycle.beat_snapshot)
+        if len(beats) <= 2:
+            held[len(beats) - 1].set()
+            released[len(beats) - 1].wait(ANSWER)
+    cycle.add_listener(listener)
+    cycle.start()
+
+    def tpdos_of(cycle_number: int, of_drives) -> None:
+        for drive in of_drives:
+            shown[drive] = cycle_number
+            for tpdo in (1, 2):
+                cycle.took((drive, tpdo))
+    try:
+        wait_until(held[0].is_set, ANSWER, 'the first beat under way')
+        tpdos_of(4, drives)
+        released[0].set()
+        wait_until(held[1].is_set, ANSWER, 'the beat of cycle 4 under way')
+        tpdos_of(5, range(1, 6))  # on time; then the receive thread is held up
+        time.sleep(0.06)  # past the next SYNC
+        tpdos_of(5, range(6, 9))  # the rest of cycle 5 and all of cycle 6 in one burst
+        tpdos_of(6, drives)
+        released[1].set()
+        wait_until(lambda: len(beats) >= 3, ANSWER, 'a beat after the burst')
+    finally:
+        for each in released:
+            each.set()
+        cycle.stop()
+    assert beats[1] == dict.fromkeys(drives, 4), beats
+    assert beats[2] is not None and len(set(beats[2].values())) == 1, \
+        f'a beat of two cycles: {beats[2]}'
 
 
 # 5. A drive that stopped by itself.

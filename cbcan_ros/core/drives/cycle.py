@@ -9,16 +9,20 @@ While the gateway produces SYNC, the beats follow it: one a SYNC cycle, as soon 
 synchronous TPDO the drives answer that SYNC with is in (``took``); without them, half a
 period after the SYNC (or after the moment they came the cycle before). So
 ``~/joint_states`` carries each cycle's feedback once, early enough for a controller's answer
-to reach the drives before the next SYNC. What the drives showed when a cycle's last TPDO
-came is taken then, on the receiving thread (``snapshot``), and is what that beat tells
-(``beat_snapshot``): TPDOs of the next cycle taken before the beat runs do not mix in.
+to reach the drives before the next SYNC. A cycle's TPDOs are told apart by whose they are,
+not by when they came: the cycle is complete once every TPDO expected came, and a TPDO that
+came already in the cycle begins the next one. So a receiving thread held up past the next
+SYNC, taking the rest of one cycle's TPDOs and the next cycle's in one burst, completes each
+cycle in turn. What the drives showed when a cycle's last TPDO came is taken then, on the
+receiving thread (``snapshot``), and is what that beat tells (``beat_snapshot``): TPDOs of
+the next cycle taken before the beat runs do not mix in.
 """
 
 from concurrent.futures import Future
 import logging
 import threading
 import time
-from typing import Callable, List, Optional
+from typing import Callable, Hashable, List, Optional, Set
 
 from .objects import FEEDBACK
 
@@ -93,8 +97,7 @@ class FeedbackCycle:
         self._stopped = False
         self._wake = threading.Condition()
         self._expected = 0  # synchronous TPDOs a SYNC cycle brings (0: not known)
-        self._arrived = 0   # of them, in the cycle that ends at _cycle_end
-        self._cycle_end = 0.0
+        self._arrived: Set[Hashable] = set()  # of them, those of the cycle under way
         self._completed = 0  # cycles whose TPDOs all came in
         self._beaten = 0     # the last of them beaten
         self._taken = None   # the snapshot of the cycle completed last
@@ -121,21 +124,19 @@ class FeedbackCycle:
         with self._wake:
             self._expected = frames
 
-    def took(self) -> None:
-        """Count a synchronous TPDO in; the last one of a cycle brings the beat forward.
+    def took(self, tpdo: Hashable) -> None:
+        """Count synchronous TPDO ``tpdo`` (whose it is) in; a cycle's last brings the beat.
 
-        The TPDO after a cycle's last one begins the next cycle, also when a receiving thread
-        held up takes both cycles' TPDOs in one burst.
+        One that came already in the cycle under way begins the next cycle: the cycle before
+        lost a TPDO, and its beat came at its deadline.
         """
-        now = time.monotonic()
         with self._wake:
-            if now >= self._cycle_end:  # the first of a new cycle
-                self._arrived = 0
-                self._cycle_end = self._sync_point(0.0) or now + self._period
-            self._arrived += 1
-            complete = 0 < self._expected <= self._arrived
+            if tpdo in self._arrived:
+                self._arrived.clear()
+            self._arrived.add(tpdo)
+            complete = 0 < self._expected <= len(self._arrived)
             if complete:
-                self._arrived, self._cycle_end = 0, now
+                self._arrived.clear()
         if complete:
             taken = self._snapshot()  # no lock of this cycle held: the drives' lock is taken
             with self._wake:

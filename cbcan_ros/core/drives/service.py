@@ -491,7 +491,7 @@ class DriveService:
                 drive.took_tpdo(values)
             self._apply(drive, values, received.timestamp)
             if received.mapping.transmission_type == 1:
-                self._cycle.took()
+                self._cycle.took(key)
 
     @prompt
     def _on_heartbeat(self, can_id: int, data: bytearray, _timestamp: float) -> None:
