@@ -541,6 +541,41 @@ def test_a_cycles_late_tpdos_taken_in_one_burst_with_the_next_cycles_complete_ea
         f'a beat of two cycles: {beats[2]}'
 
 
+def test_a_beat_waits_a_little_for_the_rest_of_a_cycle_whose_tpdos_are_coming_in():
+    # Red team, round 2: a beat due half a period after the SYNC, with part of the cycle's
+    # TPDOs in (a receive thread held up), read the drives then: joint_states showed some
+    # drives of this cycle and the others of the cycle before.
+    period = 1.0
+    start = time.monotonic() + 0.3  # SYNC k at start + k periods
+
+    def sync_point(fraction):
+        cycle_number = math.floor((time.monotonic() - start) / period - fraction) + 1
+        return start + (cycle_number + fraction) * period
+
+    shown = {'shoulder': 0, 'elbow': 0}
+    beats = []
+    cycle = FeedbackCycle(period, lambda: cycle.expect(4), sync_point,
+                          snapshot=lambda: dict(shown))
+    cycle.add_listener(lambda: beats.append((time.monotonic(), cycle.beat_snapshot)))
+    cycle.start()
+    try:
+        wait_until(lambda: time.monotonic() > start + 0.05, ANSWER, 'a SYNC')
+        shown['shoulder'] = 1
+        cycle.took(('shoulder', 1))
+        cycle.took(('shoulder', 2))
+        # The elbow's TPDOs come past the beat's time, half a period after the SYNC.
+        wait_until(lambda: time.monotonic() > start + 0.6 * period, ANSWER, 'the beat due')
+        shown['elbow'] = 1
+        cycle.took(('elbow', 1))
+        cycle.took(('elbow', 2))
+        wait_until(lambda: any(at > start and told for at, told in beats), ANSWER,
+                   'the beat of the cycle')
+    finally:
+        cycle.stop()
+    told = [told for at, told in beats if start < at < start + period]
+    assert told == [{'shoulder': 1, 'elbow': 1}], told
+
+
 # 5. A drive that stopped by itself.
 
 def statusword_of(message) -> Optional[int]:

@@ -35,6 +35,8 @@ POLL_PERIOD = 0.1
 POLL_TIMEOUT = 2.0
 # With SYNC, the beat comes this fraction of a period after it when TPDOs are still missing.
 LATEST_BEAT = 0.5
+# ... and this fraction of a period later when some of the cycle's TPDOs are in.
+LATE_TPDOS_WAIT = 0.5
 
 
 def poll(drive, lock, read_feedback: Callable[[object, List[int], float], Future],
@@ -152,9 +154,15 @@ class FeedbackCycle:
         failures = set()
         while True:
             with self._wake:
+                later = due
                 while not self._stopped and not self._all_in():
-                    timeout = due - time.monotonic()
+                    timeout = later - time.monotonic()
                     if timeout <= 0:
+                        if later == due and self._expected and self._arrived:
+                            # Part of a cycle's TPDOs in (a receive thread held up): half a
+                            # period more for the rest, rather than tell drives of two cycles.
+                            later = due + self._period * LATE_TPDOS_WAIT
+                            continue
                         break
                     self._wake.wait(timeout)
                 if self._stopped:
