@@ -13,9 +13,10 @@ import threading
 import can
 import pytest
 from std_msgs.msg import Float64
-from test_drives import CSP, NODE, rig, SCALE, WAIT  # noqa: F401 - rig is a fixture
+from test_drives import CSP, CST, NODE, rig, SCALE, WAIT  # noqa: F401 - rig is a fixture
 
 from cbcan_ros.core.drives import safety
+from cbcan_ros.simulation.durand.drive_pdos import vendor_drive_pdos
 
 from conftest import frames_within, wait_until
 
@@ -120,3 +121,41 @@ def test_a_target_streamed_while_the_halt_decides_where_to_stop_does_not_move_th
                if message.arbitration_id == 0x200 + NODE]
     assert start + 300 + JOG not in targets, targets
     assert axis.drive.position == start + 300, axis.drive.position
+
+
+def test_torque_targets_waiting_for_the_sdo_channel_do_not_follow_a_halt(rig):  # noqa: F811
+    """Targets no RPDO carries queue for the drive's SDO channel; a halt overtakes them.
+
+    Once a defect (red team): on the vendor layout (no RPDO maps 0x6071) the torque targets
+    streamed before a halt still went out after the halt's frame, one SDO write after
+    another, and a drive ignoring bit 8 in CST kept its torque for up to 49 ms.
+    """
+    axis = rig(pdos=vendor_drive_pdos(), **{'drives.command_timeout': 0.0})
+    axis.drive.halts_in_cyclic_modes = False
+    axis.enable(CST)
+    pdo = axis.gateway.node.gateway.pdo
+    wait_until(lambda: pdo.mapping_reads(NODE), WAIT, 'the PDO mapping read: the halt by RPDO')
+    send = axis.drive._network.send
+
+    def slow(cob_id: int, data: bytes) -> None:  # the drive answers torque writes late
+        if cob_id == 0x580 + NODE and bytes(data[1:3]) == b'\x71\x60':
+            threading.Timer(0.05, send, (cob_id, data)).start()
+            return
+        send(cob_id, data)
+    axis.drive._network.send = slow
+    service = axis.gateway.node.gateway.drives
+    listener = axis.gateway.raw_bus()
+    try:
+        for _ in range(4):  # a stream: the first write goes out, the others wait behind it
+            assert service.target(NODE, 300).success
+        answer = axis.command('halt')
+        seen = frames_within(listener, 0.5)
+    finally:
+        listener.shutdown()
+    assert answer.success, answer.message
+    halt = next(n for n, m in enumerate(seen)
+                if m.arbitration_id == 0x200 + NODE and m.data[1] & 0x01)
+    torques = [struct.unpack_from('<h', m.data, 4)[0] for m in seen[halt:]
+               if m.arbitration_id == 0x600 + NODE and bytes(m.data[1:4]) == b'\x71\x60\x00'
+               and m.data[0] >> 5 == 1]
+    assert torques == [0], f'torques written after the halt: {torques}'

@@ -193,8 +193,8 @@ class Gateway:
                                if node_id in dictionaries},
                               [plan.node_id for plan in boots.plans if plan.pdos and plan.boot])
         self.drives = DriveService(self.network, config.drives, self.monitor, self.pdo,
-                                   lambda accesses, timeout: self._batch(accesses, timeout,
-                                                                         True),
+                                   lambda accesses, timeout, stop=None: self._batch(
+                                       accesses, timeout, True, stop),
                                    self.sync, config.write_protection, self._bus_down,
                                    self.heartbeat.beat_now, self._end_drive_transfers)
         self.emcy.add_listener(lambda emergency: self.drives.on_emcy(

@@ -229,7 +229,8 @@ class DriveObjects:
         steps = []
         if chosen.by_sdo:
             steps.append(lambda: self._write_by_sdo(
-                [(index, data[index]) for index in chosen.by_sdo], timeout))
+                [(index, data[index]) for index in chosen.by_sdo], timeout,
+                None if cia402.CONTROLWORD in values else write))
         if frames:
             steps.append(lambda: self._send_frames(frames, previous, write, last is None,
                                                    stream))
@@ -365,12 +366,25 @@ class DriveObjects:
         batch.add_done_callback(collect)
         return done
 
-    def _write_by_sdo(self, data, timeout: float) -> 'Future[SdoResult]':
+    def _write_by_sdo(self, data, timeout: float,
+                      write: Optional[int] = None) -> 'Future[SdoResult]':
+        """Write ``data`` by SDO (object, bytes); resolves to the first failure, else success.
+
+        Of write number ``write`` (None: always), only while no later write changed the
+        controlword: a target waiting in the device's SDO queue as a halt or a stop goes out
+        must not follow it.
+        """
         if self.node_id in self._pdo.node_ids:  # no RPDO frame may undo it
             self._pdo.carry(self.node_id, [EntryValue(index, 0, data=value)
                                                     for index, value in data])
+
+        def superseded(_results) -> Optional[str]:
+            with self._lock:
+                later = write is not None and self._controlword_write > write
+            return (f'node {self.node_id}: a later command changed the controlword before '
+                    f'this write was sent') if later else None
         batch = self._sdo_batch([Access(self.node_id, index, 0, True, value)
-                                 for index, value in data], timeout)
+                                 for index, value in data], timeout, superseded)
         done: Future = Future()
         batch.add_done_callback(lambda finished: answer(done, next(
             (result for result in finished.result() if not result.success),
