@@ -467,6 +467,20 @@ def test_device_abort_is_not_answered_with_an_abort(gateway, make_rogue):
     assert [f for f in rogue.frames() if f[0] == 0x80] == []
 
 
+def test_an_unknown_command_abort_of_no_object_does_not_answer_a_read(gateway, make_rogue):
+    # Red team: a device that restarted in the middle of a block download answers each of the
+    # block's remaining segments with "unknown command" of 0000:00; a read sent to it next
+    # (a boot's read of 0x1000) took one of those for its answer and failed at once.
+    def script(request, rogue):
+        if request[0] == 0x40 and mux(request) == (0x1000, 0):
+            rogue.send(sdo(0x80, 0, 0, struct.pack('<I', UNKNOWN_COMMAND)))
+            rogue.send(upload_answer(0x1000, 0, b'\x92\x01\x02\x00'))
+    make_rogue(gateway, script)
+    response = gateway.call('sdo_read', node_id=ROGUE, index=0x1000, subindex=0)
+    assert response.success and bytes(response.data) == b'\x92\x01\x02\x00', \
+        response.message
+
+
 # What a failed transfer leaves behind must never speak on the bus.
 
 @pytest.mark.parametrize('refusal', ['timeout', 'device_abort'])

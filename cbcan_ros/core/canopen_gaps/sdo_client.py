@@ -28,6 +28,9 @@ asks of a client):
    request on (not only after the latest one), and no segment of a block goes out after it.
 5. Frames shorter than the 8 bytes CiA 301 prescribes for SDO are ignored (canopen let
    ``struct.error`` escape for them), and aborts name the transfer's index and subindex.
+   An abort "unknown command" (0x05040001) of 0000:00 is not taken as the answer to an
+   expedited or segmented initiation: every SDO server knows those; it answers a stray frame,
+   such as the rest of a block that reached a device restarted meanwhile.
 6. A transfer can be cancelled from another thread (bus down, shutdown); it ends at once,
    and so does the rest of the work it is part of (a batch: ``cancels``).
    A long one (a program image) may be bounded by each answer instead (``answer_within``:
@@ -318,8 +321,14 @@ class StrictSdoClient(SdoClient):
                 continue
             if frame[0] == _ABORT:
                 code, = struct.unpack_from('<L', frame, 4)
-                # An abort naming another object answers an earlier request, not this one.
-                if initiating and _MUX.unpack_from(frame, 1) not in (self._mux, (0, 0)):
+                # An abort naming another object answers an earlier request, not this one;
+                # nor does "unknown command" of 0000:00 answer an expedited or segmented
+                # initiation, which every SDO server knows: it answers a stray frame (the
+                # rest of a block that reached a device restarted meanwhile).
+                named = _MUX.unpack_from(frame, 1)
+                if initiating and (named not in (self._mux, (0, 0)) or (
+                        named == (0, 0) and code == abort_codes.UNKNOWN_COMMAND
+                        and self._kind in (_CCS_UPLOAD, _CCS_DOWNLOAD))):
                     self.ignored_frames += 1
                     continue
                 with self._lock:
