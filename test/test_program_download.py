@@ -96,6 +96,20 @@ class Rig:
         result, status = self.result(goal)
         return result, status, feedback
 
+    def frames_sent(self) -> list:
+        """Return the frames on the bus, once the reader has every one sent before this call.
+
+        The reader is a thread of its own that may lag on a loaded machine: a read of the
+        other device through the gateway, its request recorded, marks where the gateway's
+        earlier frames are all in.
+        """
+        since = len(self.frames.snapshot())
+        assert self.gateway.call('sdo_read', node_id=OTHER, index=0x1000, subindex=0).success
+        wait_until(lambda: any(frame.arbitration_id == 0x600 + OTHER
+                               for frame in self.frames.snapshot()[since:]), WAIT,
+                   'the marker read on the bus')
+        return self.frames.snapshot()
+
     def close(self) -> None:
         """Stop the gateway and the frame reader."""
         self.action.destroy()

@@ -180,7 +180,7 @@ def test_a_device_that_refuses_the_stop_gets_no_clear_and_no_image(
         assert result.message.startswith('STOPPING failed'), result.message
         assert 'perhaps stopped' in result.message, result.message
         assert result.abort_code == ABORT_DEVICE_STATE, result
-        frames = setup.frames.snapshot()
+        frames = setup.frames_sent()
         assert control_writes(frames, NODE) == [STOP], 'a command after the refused stop'
         assert not image_writes(frames, NODE)
         assert bytes(setup.device.image) == before and setup.device.program_running
@@ -242,8 +242,9 @@ def test_two_goals_for_one_device_sent_together_run_one_download(rig):
     refused = next(r for r in results if not r.success)
     assert 'being programmed already' in refused.message, refused.message
     assert 'nothing was sent' in refused.message, refused.message
-    assert control_writes(setup.frames.snapshot(), NODE) == [STOP, CLEAR, START]
-    assert len(image_writes(setup.frames.snapshot(), NODE)) == 1
+    frames = setup.frames_sent()
+    assert control_writes(frames, NODE) == [STOP, CLEAR, START]
+    assert len(image_writes(frames, NODE)) == 1
     assert setup.device.starts == 1
 
 
@@ -288,7 +289,7 @@ def test_another_callers_sdo_to_the_device_being_programmed_gets_one_answer(rig)
     assert result.success, result.message
     # Queued behind the image (answered or timed out there), answered once either way.
     assert got.success or got.message, got
-    assert control_writes(setup.frames.snapshot(), NODE) == [0, 3, 1]
+    assert control_writes(setup.frames_sent(), NODE) == [0, 3, 1]
 
 
 # The bus, the file and the process.
