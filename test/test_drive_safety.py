@@ -129,13 +129,21 @@ class Recorder(BusRecorder):
         return [message for _, message in self.frames[since:]]
 
     def mark(self) -> int:
-        """Send a marker frame; return its position in the recording, once recorded."""
+        """Send a marker frame; return its position in the recording, once recorded.
+
+        Sent again each second it is not recorded: a datagram is lost when the recorder's
+        socket overflows, as under a flood of frames on a loaded machine.
+        """
         self._marks += 1
         data = self._marks.to_bytes(4, 'little')
-        self.send(MARKER, data)
+        since = len(self.frames)
+        sent = [0.0]
 
         def position():
-            for number, (_, message) in enumerate(list(self.frames)):
+            if time.monotonic() - sent[0] >= 1.0:
+                self.send(MARKER, data)
+                sent[0] = time.monotonic()
+            for number, (_, message) in enumerate(list(self.frames)[since:], since):
                 if message.arbitration_id == MARKER and bytes(message.data) == data:
                     return number + 1  # +1: 0 would read as "not yet"
             return None
