@@ -553,13 +553,13 @@ class BootService:
 
         def programming(progress: Optional[Progress]) -> None:
             with self._lock:
-                began = node_id not in self._downloads
                 if progress is None:
-                    finished = self._downloads.pop(node_id, None) is not None
+                    shown_changed = self._downloads.pop(node_id, None) is not None
                 else:
+                    shown_changed = node_id not in self._downloads
                     self._downloads[node_id] = progress
-            if (progress is not None and began) or (progress is None and finished):
-                for listener in self._listeners:  # shown as being programmed, or no more
+            if shown_changed:  # shown as being programmed, or no more
+                for listener in self._listeners:
                     listener()
 
         return BootLink(sdo, nmt_send, ended, await_boot_up, await_heartbeat, read_pdos,

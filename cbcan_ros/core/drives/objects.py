@@ -380,11 +380,12 @@ class DriveObjects:
 
         def superseded(_results) -> Optional[str]:
             with self._lock:
-                later = write is not None and self._controlword_write > write
+                later = self._controlword_write > write
             return (f'node {self.node_id}: a later command changed the controlword before '
                     f'this write was sent') if later else None
         batch = self._sdo_batch([Access(self.node_id, index, 0, True, value)
-                                 for index, value in data], timeout, superseded)
+                                 for index, value in data], timeout,
+                                None if write is None else superseded)
         done: Future = Future()
         batch.add_done_callback(lambda finished: answer(done, next(
             (result for result in finished.result() if not result.success),

@@ -305,9 +305,10 @@ class ProgramDownload:
         result = self._link.stream(Access(self.node_id, PROGRAM_DATA, self._program, True,
                                           self._image),
                                    self._settings.answer_timeout, written)
-        if not result.success and reset():
-            raise _Failed(reset(), 0)
         if not result.success:
+            restarted = reset()
+            if restarted:
+                raise _Failed(restarted)
             reason = self._link.ended()
             if reason and result.abort_code in (abort_codes.LOCAL_CONTROL,
                                                 abort_codes.DEVICE_STATE, 0):
