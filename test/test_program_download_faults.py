@@ -188,6 +188,47 @@ def test_a_device_that_refuses_the_stop_gets_no_clear_and_no_image(
         setup.close()
 
 
+def test_a_device_that_restarts_when_stopped_is_cleared_once_its_boot_up_came(rig):
+    # Many bootloaders restart when the program is stopped; a clear sent meanwhile is lost.
+    setup = rig(device=dict(restarts_on_stop=0.3),
+                **{'program_download.restart_timeout': 5.0})
+    path = setup.image(2000)
+    result, status, _ = setup.run(node_id=NODE, file=path)
+    assert result.success and status == GoalStatus.STATUS_SUCCEEDED, result.message
+    assert bytes(setup.device.image) == open(path, 'rb').read()
+    frames = setup.frames_sent()
+    assert control_writes(frames, NODE) == [STOP, CLEAR, START], 'each command once'
+    boot_ups = [at for at, frame in enumerate(frames)
+                if frame.arbitration_id == 0x700 + NODE and bytes(frame.data) == b'\x00']
+    clear = next(at for at, frame in enumerate(frames)
+                 if frame.arbitration_id == 0x600 + NODE and bytes(frame.data[:5])
+                 == bytes([0x2F, 0x51, 0x1F, 1, CLEAR]))
+    assert any(at < clear for at in boot_ups), 'the clear went before the restart ended'
+
+
+def test_a_device_that_restarts_when_stopped_fails_in_clearing_naming_the_parameter(rig):
+    setup = rig(device=dict(restarts_on_stop=0.3), **{'program_download.flash_timeout': 1.0})
+    result, status, _ = setup.run(node_id=NODE, file=setup.image(2000))
+    assert not result.success and status == GoalStatus.STATUS_ABORTED
+    assert result.message.startswith('CLEARING failed'), result.message
+    assert 'the device restarted after the stop' in result.message, result.message
+    assert 'program_download.restart_timeout' in result.message, result.message
+    assert not image_writes(setup.frames_sent(), NODE)
+
+
+def test_a_restart_timeout_for_a_device_that_does_not_restart_fails_in_stopping(rig):
+    setup = rig(**{'program_download.restart_timeout': 0.5})
+    before = bytes(setup.device.image)
+    result, status, _ = setup.run(node_id=NODE, file=setup.image(2000))
+    assert not result.success and status == GoalStatus.STATUS_ABORTED
+    assert result.message.startswith('STOPPING failed: no boot-up message within 0.5 s '
+                                     'after writing 0 to 0x1F51:1 (parameter '
+                                     'program_download.restart_timeout)'), result.message
+    assert 'perhaps stopped' in result.message, result.message
+    assert control_writes(setup.frames_sent(), NODE) == [STOP], 'a command after the stop'
+    assert bytes(setup.device.image) == before
+
+
 def test_a_device_that_resets_mid_image_fails_the_download_once_and_is_not_started(rig):
     setup = rig(**{'sdo.timeout': 0.5})
     hold = Hold(setup, 3000)

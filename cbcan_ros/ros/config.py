@@ -171,6 +171,12 @@ class NodeParameters:
                       'Seconds a program download waits, after starting the new program '
                       '(0x1F51 = 1), for the boot-up message of the device',
                       floating_point_range=_between(0.1, 600.0))
+        self._declare('program_download.restart_timeout', 0.0,
+                      'For devices that restart into their bootloader when their program is '
+                      'stopped (0x1F51 = 0), as many do: seconds a program download waits '
+                      'after the stop for their boot-up message before clearing the program. '
+                      '0: the device does not restart, the clear follows the stop at once',
+                      floating_point_range=_between(0.0, 600.0))
         self._declare('program_download.at_boot', False,
                       "Let a boot download a device's software_file of the bus description "
                       '(bus_config) when its 0x1F56 differs from software_version; false: '
@@ -284,6 +290,7 @@ class NodeParameters:
             program=ProgramSettings(answer_timeout=value('sdo.timeout'),
                                     flash_timeout=value('program_download.flash_timeout'),
                                     start_timeout=value('program_download.start_timeout'),
+                                    restart_timeout=value('program_download.restart_timeout'),
                                     at_boot=value('program_download.at_boot')))
 
     def joints(self) -> Dict[int, drive_parameters.Joint]:

@@ -53,6 +53,8 @@ class ProgramSettings:
     answer_timeout: float = 0.5   # an SDO answer; each segment and block of the image
     flash_timeout: float = 30.0   # CLEARING and FLASHING: the flash's own time
     start_timeout: float = 10.0   # STARTING: from 0x1F51 = 1 to the device's boot-up
+    restart_timeout: float = 0.0  # STOPPING: from 0x1F51 = 0 to the boot-up of a device
+    #                               that restarts into its bootloader; 0: it does not
     at_boot: bool = False         # program_download.at_boot: software_file at a boot
 
 
@@ -180,8 +182,9 @@ class ProgramDownload:
         """Run every phase; return how it ended."""
         try:
             self._check_objects()
-            self._step(STOPPING, PROGRAM_CONTROL, STOP, self._settings.answer_timeout)
-            self._step(CLEARING, PROGRAM_CONTROL, CLEAR, self._settings.flash_timeout)
+            boot_ups = self._link.boot_ups()
+            self._stop()
+            self._clear(boot_ups)
             self._await_flash(CLEARING)
             self._download()
             self._begin(FLASHING)
@@ -236,9 +239,29 @@ class ProgramDownload:
         self._left = self._states[phase]
         self._feedback(Progress(phase, self._sent, len(self._image)))
 
-    def _step(self, phase: str, index: int, value: int, timeout: float) -> None:
-        self._begin(phase)
-        self._write(index, value, timeout)
+    def _stop(self) -> None:
+        self._begin(STOPPING)
+        if not self._settings.restart_timeout:
+            self._write(PROGRAM_CONTROL, STOP, self._settings.answer_timeout)
+            return
+        self._command_until_boot_up(STOP, self._settings.restart_timeout,
+                                    'program_download.restart_timeout',
+                                    'the device did not restart into its bootloader; 0 is '
+                                    'for a device that does not restart when stopped')
+
+    def _clear(self, boot_ups: int) -> None:
+        """Clear the program; ``boot_ups``: the device's count before the stop."""
+        self._begin(CLEARING)
+        try:
+            self._write(PROGRAM_CONTROL, CLEAR, self._settings.flash_timeout)
+        except _Failed as failure:
+            if self._link.boot_ups() == boot_ups:
+                raise
+            # The clear went to a device restarting: it never heard it.
+            raise _Failed(f'{failure.message}; the device restarted after the stop (its '
+                          f'boot-up message came): a device that restarts into its '
+                          f'bootloader when stopped needs parameter '
+                          f'program_download.restart_timeout', failure.abort_code) from None
 
     def _write(self, index: int, value: int, timeout: float) -> SdoResult:
         access = Access(self.node_id, index, self._program, True, bytes([value]))
@@ -328,32 +351,40 @@ class ProgramDownload:
 
     def _start_program(self) -> None:
         self._begin(STARTING)
-        access = Access(self.node_id, PROGRAM_CONTROL, self._program, True, bytes([START]))
+        n = self._program
+        refused = f'program {n} written, its start refused by the device: not started; start ' \
+                  f'it (0x1F51:{n} = 1) once the device allows it, or download again'
+        self._command_until_boot_up(START, self._settings.start_timeout,
+                                    'program_download.start_timeout',
+                                    'the new program did not come up', refused)
 
+    def _command_until_boot_up(self, command: int, timeout: float, parameter: str,
+                               not_came: str, refused_leaves: str = '') -> None:
+        """Write ``command`` to 0x1F51 and wait up to ``timeout`` s for the boot-up it brings.
+
+        ``refused_leaves``: what a refusal leaves the device in, if not the phase's default.
+        """
+        access = Access(self.node_id, PROGRAM_CONTROL, self._program, True, bytes([command]))
         refused: List[SdoResult] = []
 
         def send_once() -> str:
             result = self._sdo([access], self._settings.answer_timeout)[0]
-            # A device may jump into its new program without answering: its boot-up tells.
+            # A device may restart without answering: its boot-up tells.
             if result.success or result.abort_code == abort_codes.TIMEOUT:
                 return ''
             refused.append(result)
             return result.message
 
-        came = self._link.await_boot_up(send_once, self._settings.start_timeout)
+        came = self._link.await_boot_up(send_once, timeout)
         if refused:
             self._ended()
-            n = self._program
-            self._left = (f'program {n} written, its start refused by the device: not '
-                          f'started; start it (0x1F51:{n} = 1) once the device allows it, or '
-                          f'download again')
-            raise _Failed(f'writing 1 to 0x1F51:{n} failed: {refused[0].message}',
-                          refused[0].abort_code)
+            self._left = refused_leaves or self._left
+            raise _Failed(f'writing {command} to 0x1F51:{self._program} failed: '
+                          f'{refused[0].message}', refused[0].abort_code)
         if not came:
             self._ended()
-            raise _Failed(f'no boot-up message within {self._settings.start_timeout:g} s '
-                          f'after the start (parameter program_download.start_timeout): the '
-                          f'new program did not come up')
+            raise _Failed(f'no boot-up message within {timeout:g} s after writing {command} '
+                          f'to 0x1F51:{self._program} (parameter {parameter}): {not_came}')
 
     def _check(self) -> None:
         self._begin(CHECKING)

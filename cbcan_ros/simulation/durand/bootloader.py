@@ -15,7 +15,9 @@
 Faults to play, as constructor options: ``abort_at`` (the device aborts the download with
 0x08000020 once that many bytes arrived), ``reset_at`` (the device resets, sending its
 boot-up message, once that many bytes arrived; what follows of the image reaches the
-restarted device), ``flash_error`` (the code 0x1F57 reports after
+restarted device), ``restarts_on_stop`` (seconds: the device restarts into its bootloader
+when told to stop, as many do: right after its answer it hears and says nothing for that
+long, then sends its boot-up message), ``flash_error`` (the code 0x1F57 reports after
 flashing), ``comes_back`` False (the new program never sends anything: a device that does not
 come back). The program and its state survive resets, as a bootloader's flash does.
 """
@@ -75,7 +77,8 @@ class BootloaderDevice(DurandDevice):
     def __init__(self, node_id: int, *args, image: bytes = b'firmware 1.0',
                  flash_time: float = 0.2, clear_time: float = 0.1,
                  abort_at: Optional[int] = None, reset_at: Optional[int] = None,
-                 flash_error: int = 0, comes_back: bool = True, **options):
+                 restarts_on_stop: Optional[float] = None, flash_error: int = 0,
+                 comes_back: bool = True, **options):
         super().__init__(node_id, *args, **options)
         self.image = bytearray(image)
         self.program_running = True          # the program runs (0x1F51 reads 1)
@@ -84,6 +87,7 @@ class BootloaderDevice(DurandDevice):
         self.clear_time = clear_time
         self.abort_at = abort_at
         self.reset_at = reset_at
+        self.restarts_on_stop = restarts_on_stop
         self.flash_error = flash_error
         self.comes_back = comes_back
         self.starts = 0              # start commands taken
@@ -131,6 +135,8 @@ class BootloaderDevice(DurandDevice):
         """Carry out a write of 0x1F51:1; a refusal raises (durand answers its abort)."""
         where = (PROGRAM_CONTROL, PROGRAM)
         if command == STOP:
+            if self.program_running and self.restarts_on_stop is not None:
+                shared_scheduler().add(0.0, self._restart_into_bootloader)  # answer first
             self.program_running = False
         elif command == CLEAR:
             if self.program_running or self._busy():
@@ -156,6 +162,19 @@ class BootloaderDevice(DurandDevice):
             self._network.muted = True  # the new program crashed before saying anything
             return
         self._boot(WHOLE_DICTIONARY, durand_reset=self.node.nmt.reset)
+
+    def _restart_into_bootloader(self) -> None:
+        """Go deaf and silent for ``restarts_on_stop`` s, then send the boot-up message."""
+        network = self._network
+        if network is None:
+            return  # stopped meanwhile
+        network.muted = network.deaf = True
+
+        def back() -> None:
+            if self._network is network:
+                network.muted = network.deaf = False
+                self.reset_now()
+        shared_scheduler().add(self.restarts_on_stop, back)
 
     def reset_now(self) -> None:
         """Reset as a power glitch or watchdog does: the boot-up message, the program gone."""

@@ -34,6 +34,7 @@ class BusNetwork(NetworkABC):
         self.rewrite: Optional[Callable[[int, bytes], bytes]] = None
         self.allowed: Callable[[int], bool] = lambda cob_id: True
         self.muted = True  # nothing leaves while the device is being built or after stop
+        self.deaf = False  # nothing is taken in while the device restarts
         self._running = False
         self._thread: Optional[threading.Thread] = None
 
@@ -84,7 +85,7 @@ class BusNetwork(NetworkABC):
                 LOGGER.warning('durand device: receive failed', exc_info=True)
                 time.sleep(RECEIVE_CYCLE)
                 continue
-            if message is not None and self._running:
+            if message is not None and self._running and not self.deaf:
                 self._dispatch(message)
 
     def _dispatch(self, message: can.Message) -> None:
