@@ -188,8 +188,10 @@ class DriveTopics:
             error=status.error, target_reached=status.target_reached, halted=status.halted)
 
     def _publish_joint_states(self) -> None:
-        if (self._joint_states is None or self._refusal() is not None
-                or not self._joint_states.get_subscription_count()):
+        wanted = (self._joint_states is not None and self._refusal() is None
+                  and self._joint_states.get_subscription_count() > 0)
+        self._service.want_cycle_statuses(wanted)
+        if not wanted:
             return  # volatile: a message nobody receives is not worth building
         statuses = self._service.cycle_statuses()
         newest = max(status.received for status in statuses)

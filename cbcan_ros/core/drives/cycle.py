@@ -105,6 +105,8 @@ class FeedbackCycle:
         self._taken = None   # the snapshot of the cycle completed last
         # The snapshot of the beat running (its cycle's), None for a beat without one.
         self.beat_snapshot = None
+        # Whether snapshots are taken: only while a beat's listener reads them.
+        self.snapshots = True
         self._thread = threading.Thread(target=self._run, name='drive cycle', daemon=True)
 
     def add_listener(self, listener: Callable[[], None]) -> None:
@@ -140,7 +142,8 @@ class FeedbackCycle:
             if complete:
                 self._arrived.clear()
         if complete:
-            taken = self._snapshot()  # no lock of this cycle held: the drives' lock is taken
+            # No lock of this cycle held: the drives' lock is taken.
+            taken = self._snapshot() if self.snapshots else None
             with self._wake:
                 self._completed += 1
                 self._taken = taken

@@ -161,6 +161,14 @@ class DriveService:
         taken = self._cycle.beat_snapshot
         return taken if taken is not None else self.statuses()
 
+    def want_cycle_statuses(self, wanted: bool) -> None:
+        """Say whether :meth:`cycle_statuses` is read: the statuses are then taken each cycle.
+
+        While not, the receive thread takes none (a beat's statuses are then as they are
+        now): 8 drives at 250 Hz are 2,000 statuses a second nobody reads.
+        """
+        self._cycle.snapshots = wanted
+
     def command_timeouts(self, node_id: int) -> int:
         """Return how often the command timeout halted drive ``node_id``."""
         with self._lock:
