@@ -185,6 +185,12 @@ class BusSupervisor:
         self._on_sent = on_sent
 
     @property
+    def down_reason(self) -> Optional[str]:
+        """Return why the bus is down, None while it is up (checked for every request)."""
+        with self._lock:
+            return None if self._up else self._reason
+
+    @property
     def status(self) -> BusStatus:
         """Return the bus state now."""
         with self._lock:

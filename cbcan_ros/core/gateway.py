@@ -419,16 +419,15 @@ class Gateway:
 
     def _lss_refusal(self) -> Optional[str]:
         refusal = self.config.write_protection.refuses_lss()
-        status = self.bus.status
         if refusal:
             return refusal
         if self._closing:
             return SHUTTING_DOWN
-        return None if status.up else f'the CAN bus is down: {status.reason}'
+        return self._bus_down()
 
     def _bus_down(self) -> Optional[str]:
-        status = self.bus.status
-        return None if status.up else f'the CAN bus is down: {status.reason}'
+        reason = self.bus.down_reason
+        return None if reason is None else f'the CAN bus is down: {reason}'
 
     def _open_bus(self) -> can.BusABC:
         options = dict(self.config.bus_options)
@@ -470,12 +469,12 @@ class Gateway:
         def refused(message: str) -> Future:
             return resolved(one_each(SdoResult.failed(message), count))
 
-        status = self.bus.status
+        down = self._bus_down()
         with self._lock:
             if self._closing and not (drive_stop and self._stopping_drives):
                 return refused(f'{SHUTTING_DOWN}; nothing was sent')
-            if not status.up:
-                return refused(f'the CAN bus is down: {status.reason}; nothing was sent')
+            if down:
+                return refused(f'{down}; nothing was sent')
             channel = self._channels.get(node_id)
             if channel is None:
                 client = StrictSdoClient(0x600 + node_id, 0x580 + node_id,

@@ -43,8 +43,10 @@ def intercept_responses(service, send_when_ready: Callable) -> Callable:
 
 # rclpy's text when rcl_send_response returns RCL_RET_TIMEOUT (rclpy/src/rclpy/service.cpp).
 _DROPPED = 'failed to send response (timeout)'
+_DROPPED_PATTERN = re.escape(_DROPPED)
 _sending = threading.local()
 _hook_lock = threading.Lock()
+_watching = [None, None]  # the hook and the filter last put in place
 
 
 def watch_for_dropped_answers() -> None:
@@ -55,6 +57,10 @@ def watch_for_dropped_answers() -> None:
     default shows it once per place, and another filter put first might hide it or make it
     an error. The filter is the process's: unwrapped services' drops are shown every time.
     """
+    filters = warnings.filters
+    if (warnings._showwarnmsg is _watching[0] and filters
+            and filters[0] is _watching[1]):
+        return  # both still in place (every answer asks): no lock, no pattern
     with _hook_lock:
         show = warnings._showwarnmsg
         if not getattr(show, 'reports_dropped_answers', False):
@@ -69,9 +75,10 @@ def watch_for_dropped_answers() -> None:
             warnings._showwarnmsg = show_or_report
         first = warnings.filters[0] if warnings.filters else None
         if not (first and first[0] == 'always'
-                and getattr(first[1], 'pattern', first[1]) == re.escape(_DROPPED)):
-            warnings.filterwarnings('always', message=re.escape(_DROPPED),
+                and getattr(first[1], 'pattern', first[1]) == _DROPPED_PATTERN):
+            warnings.filterwarnings('always', message=_DROPPED_PATTERN,
                                     category=RuntimeWarning)
+        _watching[:] = [warnings._showwarnmsg, warnings.filters[0]]
 
 
 def send_or_report_dropped(send: Callable, response, header) -> bool:

@@ -86,6 +86,7 @@ class SdoChannel:
         self._timeouts = 0
         self._latencies: deque = deque(maxlen=LATENCY_SAMPLES)
         self._cancels = 0  # the client's cancels when the running job was taken
+        self._running = False  # the worker has a job (set when taken, until answered)
         self._thread = threading.Thread(target=self._work, name=f'sdo-node-{node_id}',
                                         daemon=True)
         self._thread.start()
@@ -182,8 +183,10 @@ class SdoChannel:
                     f'waiting for it (parameter sdo.queue_limit); nothing was sent',
                     abort_codes.NO_RESOURCE)
             if refusal is None:
+                if self._running or len(self._jobs):
+                    # It waits for the worker: answered at its deadline if still waiting.
+                    job.watch = self._deadlines.watch(job.deadline, lambda: self._expire(job))
                 self._jobs.put(job)
-                job.watch = self._deadlines.watch(job.deadline, lambda: self._expire(job))
         if refusal is not None:
             self._resolve(job, job.failed(refusal))
         return job.future
@@ -208,11 +211,14 @@ class SdoChannel:
                 self._resolve(job, job.failed(self._queued_too_long(job)))
             else:
                 self._resolve(job, job.run(job.deadline))
+            with self._changed:
+                self._running = False
             del job  # an idle worker must not keep its last request (and answer) alive
 
     def _take(self, job: _Job) -> None:
         """Start ``job`` (the queue's lock held): a :meth:`fail_all` from now on ends it."""
         job.started = time.monotonic()
+        self._running = True
         self._cancels = self._client.cancels
 
     def _resolve(self, job: _Job, result) -> None:
