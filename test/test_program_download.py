@@ -389,7 +389,7 @@ def test_the_python_client_reports_progress_and_raises_on_a_refusal(rig):
             gateway.program_download(NODE, path + '.missing')
 
 
-def booted(start_durand, tmp_path, device=None, at_boot=True, plain=False):
+def booted(start_durand, tmp_path, device=None, at_boot=True, plain=False, **parameters):
     """Start a gateway whose bus description gives NODE a software_file and its version.
 
     Returns (the gateway, the device, the new image's bytes).
@@ -411,7 +411,8 @@ def booted(start_durand, tmp_path, device=None, at_boot=True, plain=False):
             software_version: 0x{zlib.crc32(image):08X}
         """)
     gateway = Harness({'can.channel': channel, 'simulation.devices': None,
-                       'bus_config': path, 'program_download.at_boot': at_boot})
+                       'bus_config': path, 'program_download.at_boot': at_boot,
+                       **parameters})
     return gateway, unit, image
 
 

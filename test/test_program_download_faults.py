@@ -167,12 +167,36 @@ class StopRefusingDevice(BootloaderDevice):
         super()._control(command)
 
 
+class ClearRefusingDevice(BootloaderDevice):
+    """A bootloader that refuses to clear the program (0x1F51:1 = 3 answered with an abort)."""
+
+    def _control(self, command: int) -> None:
+        if command == CLEAR:
+            raise SDODomainAbort(ABORT_DEVICE_STATE, (PROGRAM_CONTROL, 1))
+        super()._control(command)
+
+
+class UnansweredStopDevice(BootloaderDevice):
+    """A bootloader that restarts when stopped before it answers the stop."""
+
+    def _control(self, command: int) -> None:
+        if command == STOP and self.program_running:
+            self._network.muted = True  # its answer is lost in the restart
+        super()._control(command)
+
+
+def bootloaders_of(kind, start_durand):
+    """Return a ``start_durand`` that starts ``kind`` where a rig asks for a bootloader."""
+    def start(node_id, **options):
+        if options.get('kind') is BootloaderDevice:
+            options['kind'] = kind
+        return start_durand(node_id, **options)
+    return start
+
+
 def test_a_device_that_refuses_the_stop_gets_no_clear_and_no_image(
         ros_context, start_durand, tmp_path):
-    def refusing(node_id, kind=DurandDevice, **options):
-        kind = StopRefusingDevice if kind is BootloaderDevice else kind
-        return start_durand(node_id, kind=kind, **options)
-    setup = Rig(refusing, tmp_path)
+    setup = Rig(bootloaders_of(StopRefusingDevice, start_durand), tmp_path)
     try:
         before = bytes(setup.device.image)
         result, status, _ = setup.run(node_id=NODE, file=setup.image(2000))
@@ -227,6 +251,72 @@ def test_a_restart_timeout_for_a_device_that_does_not_restart_fails_in_stopping(
     assert 'perhaps stopped' in result.message, result.message
     assert control_writes(setup.frames_sent(), NODE) == [STOP], 'a command after the stop'
     assert bytes(setup.device.image) == before
+
+
+def test_a_device_in_its_bootloader_already_is_not_waited_for_to_restart(rig):
+    # Red team: after a failed download left the device in its bootloader, the next one,
+    # with restart_timeout set as the failure told, waited for a restart that never came.
+    setup = rig(device=dict(restarts_on_stop=0.3),
+                **{'program_download.restart_timeout': 60.0})
+    setup.device.program_running = False  # 0x1F51:1 reads 0
+    path = setup.image(2000)
+    result, status, _ = setup.run(node_id=NODE, file=path)
+    assert result.success and status == GoalStatus.STATUS_SUCCEEDED, result.message
+    assert bytes(setup.device.image) == open(path, 'rb').read()
+
+
+def test_a_clear_refused_after_the_restart_says_nothing_of_a_restart(
+        ros_context, start_durand, tmp_path):
+    # Red team: any failed clear after the awaited restart named restart_timeout, although
+    # it was set and the device had answered the clear.
+    setup = Rig(bootloaders_of(ClearRefusingDevice, start_durand), tmp_path,
+                device=dict(restarts_on_stop=0.3),
+                **{'program_download.restart_timeout': 5.0})
+    try:
+        result, _, _ = setup.run(node_id=NODE, file=setup.image(2000))
+        assert not result.success and result.abort_code == ABORT_DEVICE_STATE, result
+        assert result.message.startswith('CLEARING failed'), result.message
+        assert 'restart' not in result.message.split('; the device is left')[0], \
+            result.message
+    finally:
+        setup.close()
+
+
+def test_a_device_that_restarts_without_answering_the_stop_names_the_parameter(
+        ros_context, start_durand, tmp_path):
+    start = bootloaders_of(UnansweredStopDevice, start_durand)
+    setup = Rig(start, tmp_path, device=dict(restarts_on_stop=0.3))
+    try:
+        result, _, _ = setup.run(node_id=NODE, file=setup.image(2000))
+        assert not result.success
+        assert result.message.startswith('STOPPING failed'), result.message
+        assert 'program_download.restart_timeout' in result.message, result.message
+    finally:
+        setup.close()
+    # With the parameter, its boot-up is the answer.
+    setup = Rig(start, tmp_path, device=dict(restarts_on_stop=0.3),
+                **{'program_download.restart_timeout': 5.0})
+    try:
+        result, status, _ = setup.run(node_id=NODE, file=setup.image(2000))
+        assert result.success and status == GoalStatus.STATUS_SUCCEEDED, result.message
+        assert control_writes(setup.frames_sent(), NODE) == [STOP, CLEAR, START]
+    finally:
+        setup.close()
+
+
+def test_a_boot_download_of_a_device_restarting_when_stopped_logs_the_parameter(
+        ros_context, start_durand, tmp_path, caplog):
+    # Red team: the boot's download waited the whole flash timeout, then the boot-up it held
+    # began a boot that succeeded: the failure and its cure showed nowhere.
+    gateway, unit, image = booted(start_durand, tmp_path, device=dict(restarts_on_stop=0.3),
+                                  **{'program_download.flash_timeout': 1.0})
+    try:
+        wait_until(lambda: any('program_download.restart_timeout' in record.getMessage()
+                               for record in caplog.records), WAIT,
+                   'the failed download logged, naming the parameter')
+        wait_until(lambda: bytes(unit.image) == image, WAIT, 'the image stored by a later boot')
+    finally:
+        gateway.close()
 
 
 def test_a_device_that_resets_mid_image_fails_the_download_once_and_is_not_started(rig):

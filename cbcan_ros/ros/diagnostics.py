@@ -220,7 +220,8 @@ class Diagnostics:
         statuses = [self._device_status(node_id,
                                         heartbeats.get(node_id) or gateway.monitor.status(node_id),
                                         emergencies.get(node_id) or EmcyStatus(node_id),
-                                        sdo.get(node_id) or SdoStatistics(), bus_up)
+                                        sdo.get(node_id) or SdoStatistics(), bus_up,
+                                        node_id in programming)
                     for node_id in sorted(set(heartbeats) | set(emergencies) | set(sdo) |
                                           set(pdo) | set(boots) | set(programming))]
         for status in statuses:
@@ -288,13 +289,16 @@ class Diagnostics:
         }.items()]
 
     def _device_status(self, node_id: int, heartbeat: NodeStatus, emcy: EmcyStatus,
-                       sdo: SdoStatistics, bus_up: bool) -> DiagnosticStatus:
+                       sdo: SdoStatistics, bus_up: bool,
+                       programmed: bool) -> DiagnosticStatus:
         expected = node_id in self._expected
         heard = heartbeat.last_seen is not None
         if heartbeat.detected:
             level, message = OK, heartbeat.state_name
         elif expected:
-            level = ERROR
+            # Silent while a download restarts it (its bootloader, its new program): the
+            # download tells whether it came back.
+            level = WARN if programmed else ERROR
             message = (f'expected but silent for {heartbeat.last_seen_age:.1f} s' if heard
                        else 'expected but never heard')
         elif heard:

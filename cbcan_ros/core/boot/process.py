@@ -8,6 +8,7 @@ calls, never races them, and passes the write protection) and its NMT command.
 """
 
 from dataclasses import dataclass
+import logging
 import struct
 import time
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
@@ -40,6 +41,7 @@ from .plan import (
     Write,
 )
 
+LOGGER = logging.getLogger(__name__)
 NO_SUCH_OBJECT = (abort_codes.OBJECT_DOES_NOT_EXIST, abort_codes.SUBINDEX_NOT_EXIST)
 # The COB-ID entries of the PDOs: bit 30 (no RTR) is the device's to set, whatever was written.
 COB_ID_ENTRIES = (range(0x1400, 0x1600), range(0x1800, 0x1A00))
@@ -79,6 +81,7 @@ class BootLink:
       :class:`~cbcan_ros.core.program.download.ProgramLink` has it.
     - ``programming(progress)``: the progress of the program download this boot runs, None
       once it has ended (the device is shown as being programmed meanwhile).
+    - ``boot_ups()``: the device's boot-up messages heard so far, awaited or not.
     """
 
     sdo: Callable[[Sequence[Access], float], List[SdoResult]]
@@ -89,6 +92,7 @@ class BootLink:
     read_pdos: Callable[[], str]
     stream: Callable[[Access, float, Callable[[int, bool], Optional[str]]], SdoResult]
     programming: Callable[[Optional[Progress]], None] = lambda progress: None
+    boot_ups: Callable[[], int] = lambda: 0
 
 
 @dataclass(frozen=True)
@@ -272,11 +276,17 @@ class DeviceBoot:
         link = self._link
         download = ProgramDownload(plan.node_id, image, 1, plan.software_version, True,
                                    ProgramLink(link.sdo, link.stream, link.await_boot_up,
-                                               link.ended), self._program, link.programming)
+                                               link.ended, link.boot_ups), self._program,
+                                   link.programming)
         try:
             outcome = download.run()
         finally:
             link.programming(None)
+        if not outcome.success and link.ended():
+            # The boot ends (a boot-up it held, shutdown, the bus), but the download's own
+            # failure may be the device's, and it is told: a boot after it may succeed.
+            LOGGER.warning('node %s: downloading %s failed: %s', plan.label,
+                           plan.software_file, outcome.message)
         self._check_ended()
         if not outcome.success:
             raise BootFailed('G' if outcome.refused else 'I',

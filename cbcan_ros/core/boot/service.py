@@ -74,6 +74,7 @@ class _Device:
         self.ready = False         # booted, waiting to be started
         self.awaiting_boot_up = False
         self.boot_ups = 0          # boot-ups heard while awaited
+        self.boot_ups_heard = 0    # every boot-up heard (a download's count of resets)
         self.heartbeats = 0
         self.heard = False
         self.lost = False
@@ -551,6 +552,10 @@ class BootService:
         def stream(access, answer_within, written):
             return self._sdo_stream(access, answer_within, written).result()
 
+        def boot_ups() -> int:
+            with self._lock:
+                return device.boot_ups_heard
+
         def programming(progress: Optional[Progress]) -> None:
             with self._lock:
                 if progress is None:
@@ -563,7 +568,7 @@ class BootService:
                     listener()
 
         return BootLink(sdo, nmt_send, ended, await_boot_up, await_heartbeat, read_pdos,
-                        stream, programming)
+                        stream, programming, boot_ups)
 
     @prompt
     def _on_heartbeat(self, can_id: int, data: bytearray, _timestamp: float) -> None:
@@ -576,6 +581,7 @@ class BootService:
             again = device.lost
             device.heard, device.lost = True, False
             if data[0] == nmt.BOOT_UP:
+                device.boot_ups_heard += 1
                 if device.awaiting_boot_up:
                     device.boot_ups += 1
                     self._lock.notify_all()

@@ -160,6 +160,7 @@ class ProgramDownload:
         self._sent = 0
         self._flash = 0
         self._has_flash_status = True
+        self._program_running = True  # 0x1F51:n read non-zero (or not at all) before the stop
         self._software_id = 0
         self._id_text = ''  # what the check found of the software id, for the answer
         self._transfer = ''
@@ -182,9 +183,7 @@ class ProgramDownload:
         """Run every phase; return how it ended."""
         try:
             self._check_objects()
-            boot_ups = self._link.boot_ups()
-            self._stop()
-            self._clear(boot_ups)
+            self._clear(self._stop())
             self._await_flash(CLEARING)
             self._download()
             self._begin(FLASHING)
@@ -232,6 +231,7 @@ class ProgramDownload:
                           f' give 0 or leave it out; {NOTHING_SENT}', results[2].abort_code,
                           refused=True)
         self._has_flash_status = results[3].success
+        self._program_running = not (results[0].success and not any(results[0].data))
 
     def _begin(self, phase: str) -> None:
         self._ended()
@@ -239,29 +239,47 @@ class ProgramDownload:
         self._left = self._states[phase]
         self._feedback(Progress(phase, self._sent, len(self._image)))
 
-    def _stop(self) -> None:
+    def _stop(self) -> int:
+        """Stop the program; return the device's boot-ups counted once it is stopped."""
         self._begin(STOPPING)
-        if not self._settings.restart_timeout:
+        # A program stopped already (0x1F51 read 0: the device runs its bootloader) does
+        # not restart when stopped again.
+        if self._settings.restart_timeout and self._program_running:
+            self._command_until_boot_up(STOP, self._settings.restart_timeout,
+                                        'program_download.restart_timeout',
+                                        'the device did not restart, or took longer; 0 is '
+                                        'for a device that does not restart when stopped')
+            return self._link.boot_ups()
+        boot_ups = self._link.boot_ups()
+        try:
             self._write(PROGRAM_CONTROL, STOP, self._settings.answer_timeout)
-            return
-        self._command_until_boot_up(STOP, self._settings.restart_timeout,
-                                    'program_download.restart_timeout',
-                                    'the device did not restart into its bootloader; 0 is '
-                                    'for a device that does not restart when stopped')
+        except _Failed as failure:
+            if self._settings.restart_timeout or failure.abort_code != abort_codes.TIMEOUT:
+                raise
+            raise self._restart_hint(failure, 'did not answer the stop') from None
+        return boot_ups
 
     def _clear(self, boot_ups: int) -> None:
-        """Clear the program; ``boot_ups``: the device's count before the stop."""
+        """Clear the program; ``boot_ups``: the device's count once it was stopped."""
         self._begin(CLEARING)
         try:
             self._write(PROGRAM_CONTROL, CLEAR, self._settings.flash_timeout)
         except _Failed as failure:
-            if self._link.boot_ups() == boot_ups:
+            # Its boot-up, not an answer, came (a boot then ends at once, without one).
+            if self._link.boot_ups() == boot_ups or failure.abort_code not in (
+                    0, abort_codes.TIMEOUT):
                 raise
-            # The clear went to a device restarting: it never heard it.
-            raise _Failed(f'{failure.message}; the device restarted after the stop (its '
-                          f'boot-up message came): a device that restarts into its '
-                          f'bootloader when stopped needs parameter '
-                          f'program_download.restart_timeout', failure.abort_code) from None
+            raise self._restart_hint(failure, 'restarted after the stop (its boot-up message '
+                                              'came) and did not hear the clear') from None
+
+    def _restart_hint(self, failure: _Failed, what: str) -> _Failed:
+        """Return ``failure`` of a command the device did not answer, with why it may not."""
+        if self._settings.restart_timeout:
+            hint = f'; the device {what}'
+        else:
+            hint = (f'; the device {what}: a device that restarts into its bootloader when '
+                    f'stopped needs parameter program_download.restart_timeout')
+        return _Failed(failure.message + hint, failure.abort_code)
 
     def _write(self, index: int, value: int, timeout: float) -> SdoResult:
         access = Access(self.node_id, index, self._program, True, bytes([value]))
