@@ -94,6 +94,10 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
     assert result.results[0].successful, result.results[0].reason
     assert transition(Transition.TRANSITION_CONFIGURE)
     assert state() == 'inactive'
+    # Configured, the parameters are read: a change would be taken and ignored.
+    result = call(set_parameters, SetParameters.Request(parameters=[fixed]), 'set', node)
+    assert not result.results[0].successful
+    assert 'cleanup, then configure' in result.results[0].reason, result.results[0].reason
 
     sdo_read = client(SdoRead, 'sdo_read')
     read = SdoRead.Request(node_id=DEVICE, index=0x1000, timeout=ANSWER)

@@ -20,6 +20,7 @@ import time
 from typing import Tuple
 
 from builtin_interfaces.msg import Time
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -129,6 +130,14 @@ def _fill_result(result, response) -> None:
     response.message = result.message
     if hasattr(response, 'data'):
         response.data = _octets(result.data)
+
+
+def _refuse_changes(parameters) -> SetParametersResult:
+    """Refuse a parameter change while the gateway runs: it reads them when it starts."""
+    names = ', '.join(parameter.name for parameter in parameters)
+    return SetParametersResult(successful=False, reason=(
+        f'{names}: the gateway reads its parameters when it starts; they keep their values '
+        f'until it is started again (a managed node: cleanup, then configure)'))
 
 
 def _octets(data: bytes) -> array.array:
@@ -248,6 +257,8 @@ class GatewayInterface:
         node.get_logger().info(
             f'CANopen gateway on {config.interface} channel {config.channel!r}; '
             f'simulated devices: {[d.node_id for d in self.simulated_devices] or "none"}')
+        # Last: every parameter was read above, and a change now would be taken and ignored.
+        self._parameters_read = node.add_on_set_parameters_callback(_refuse_changes)
 
     def _simulated_devices(self, parameters: NodeParameters) -> list:
         node_ids = parameters.node_ids('simulation.devices')
@@ -305,6 +316,9 @@ class GatewayInterface:
 
     def destroy(self) -> None:
         """Shut down, stop the simulated devices and take the services and topics away."""
+        refusing, self._parameters_read = self._parameters_read, None
+        if refusing is not None:  # destroyed once before (a managed node's error, then exit)
+            self._node.remove_on_set_parameters_callback(refusing)
         self.shut_down()
         for device in self.simulated_devices:
             device.stop()
