@@ -298,6 +298,10 @@ def enabled_in_csp_with_sync(rig):
     axis.drive.set_value(QUICK_STOP_OPTION, 0, struct.pack('<h', 6))
     gateway = axis.gateway.node.gateway
     wait_until(lambda: 1 in gateway.pdo.mappings(NODE)[1], WAIT, "the drive's RPDO 1 read")
+    # Its PDOs are used once its heartbeat says OPERATIONAL (before: SDO, and no RPDO 1 frame
+    # for a stop to be undone by; seen once on a busy machine).
+    wait_until(lambda: gateway.monitor.operational(NODE), WAIT,
+               'the drive heard OPERATIONAL')
     assert axis.command('enable', CSP, timeout=WAIT).success
     return axis, gateway
 

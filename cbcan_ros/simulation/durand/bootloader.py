@@ -136,7 +136,10 @@ class BootloaderDevice(DurandDevice):
         where = (PROGRAM_CONTROL, PROGRAM)
         if command == STOP:
             if self.program_running and self.restarts_on_stop is not None:
-                shared_scheduler().add(0.0, self._restart_into_bootloader)  # answer first
+                # Deaf from now on (the next command is lost in the restart), mute once the
+                # answer is out.
+                self._network.deaf = True
+                shared_scheduler().add(0.0, self._restart_into_bootloader)
             self.program_running = False
         elif command == CLEAR:
             if self.program_running or self._busy():
