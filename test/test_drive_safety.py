@@ -291,15 +291,15 @@ class DriveRig:
         self._streams.append(targets)
         return targets
 
-    def enable_moving(self) -> Targets:
+    def enable_moving(self, timeout: float = COMMAND_TIMEOUT) -> Targets:
         """Start the drive, enable it in CSV and stream VELOCITY; return once it moves.
 
         It waits first for the drive_state that shows the gateway has read the drive: until
-        then an enable is refused.
+        then an enable is refused. ``timeout``: the enable's.
         """
         self.wait_state('SWITCH_ON_DISABLED')
         self.nmt_start()
-        enabled = self.command('enable', CSV)
+        enabled = self.command('enable', CSV, timeout)
         assert enabled.success, enabled.message
         assert self.drive.drive_state == 'OPERATION_ENABLED'
         targets = self.stream()

@@ -12,6 +12,7 @@ import time
 
 from test_drive_safety import (  # noqa: F401 (rig: a fixture)
     ANSWER,
+    COMMAND_TIMEOUT,
     DriveCommand,
     NODE,
     nothing_to_the_drive_after,
@@ -32,7 +33,10 @@ SYNC_PERIOD = 0.8
 def test_a_signal_while_a_resume_waits_for_its_sync(rig):  # noqa: F811
     axis = rig('-p', 'drives.command_timeout:=0.0', '-p', f'sync.period:={SYNC_PERIOD}',
                pdos=default_drive_pdos(transmission_type=1))
-    axis.enable_moving()
+    # Each of the enable's three steps waits for a SYNC to be sent, one to be applied and
+    # one to be shown: about three periods, 7 s of the 10 s a command gets by default
+    # (a busy machine took longer once).
+    axis.enable_moving(timeout=COMMAND_TIMEOUT + 12 * SYNC_PERIOD)
     axis.stop_streams()
     halted = axis.command('halt')
     assert halted.success, halted.message
