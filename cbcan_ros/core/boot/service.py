@@ -73,8 +73,7 @@ class _Device:
         self.wake = threading.Condition(mutex)  # the service's lock; told of a boot wanted
         self.ready = False         # booted, waiting to be started
         self.awaiting_boot_up = False
-        self.boot_ups = 0          # boot-ups heard while awaited
-        self.boot_ups_heard = 0    # every boot-up heard (a download's count of resets)
+        self.boot_ups = 0          # every boot-up heard (awaited, and a download's resets)
         self.heartbeats = 0
         self.heard = False
         self.lost = False
@@ -554,7 +553,7 @@ class BootService:
 
         def boot_ups() -> int:
             with self._lock:
-                return device.boot_ups_heard
+                return device.boot_ups
 
         def programming(progress: Optional[Progress]) -> None:
             with self._lock:
@@ -581,9 +580,8 @@ class BootService:
             again = device.lost
             device.heard, device.lost = True, False
             if data[0] == nmt.BOOT_UP:
-                device.boot_ups_heard += 1
+                device.boot_ups += 1
                 if device.awaiting_boot_up:
-                    device.boot_ups += 1
                     self._lock.notify_all()
                 else:
                     self._want(device, True)

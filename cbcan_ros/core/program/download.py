@@ -231,7 +231,7 @@ class ProgramDownload:
                           f' give 0 or leave it out; {NOTHING_SENT}', results[2].abort_code,
                           refused=True)
         self._has_flash_status = results[3].success
-        self._program_running = not (results[0].success and not any(results[0].data))
+        self._program_running = not results[0].success or _number(results[0].data) != 0
 
     def _begin(self, phase: str) -> None:
         self._ended()

@@ -167,11 +167,11 @@ class BootloaderDevice(DurandDevice):
         self._boot(WHOLE_DICTIONARY, durand_reset=self.node.nmt.reset)
 
     def _restart_into_bootloader(self) -> None:
-        """Go deaf and silent for ``restarts_on_stop`` s, then send the boot-up message."""
+        """Go silent (deaf since the stop) for ``restarts_on_stop`` s, then send the boot-up."""
         network = self._network
         if network is None:
             return  # stopped meanwhile
-        network.muted = network.deaf = True
+        network.muted = True
 
         def back() -> None:
             if self._network is network:
