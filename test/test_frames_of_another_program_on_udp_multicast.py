@@ -96,3 +96,22 @@ def test_an_error_frame_of_another_program_does_not_take_the_bus_down(start_node
         assert answer.success, f"sdo_read after another program's error frame: {answer.message}"
     bus = recorder.wait_for(f'{name}: CAN bus', DiagnosticStatus.OK, timeout=5.0)
     assert values(bus)['Reopen count'] == '0', values(bus)
+
+
+FLAGS = ('is_extended_id', 'is_remote_frame', 'is_error_frame', 'is_fd', 'bitrate_switch',
+         'error_state_indicator', 'is_rx')
+
+
+def test_frames_whose_flags_are_no_booleans_are_dropped_and_counted(start_node, client_node,
+                                                                    start_durand):
+    # python-can's check takes 1 for True; CANopen code reading such a frame was never
+    # meant to see it. Each is a heartbeat of node 9 with one flag of another type.
+    group, port, name, node, sdo_read, request = _gateway(start_node, client_node, start_durand)
+    recorder = DiagnosticsRecorder(client_node)
+    for flag in FLAGS:
+        _send(group, port, {'arbitration_id': 0x709, 'data': b'\x05', flag: 0})
+        answer = call(sdo_read, request, 'sdo_read', node)
+        assert answer.success, f'sdo_read after a frame with {flag}=0: {answer.message}'
+    bus = recorder.wait_for(f'{name}: CAN bus', DiagnosticStatus.OK, timeout=10.0,
+                            where=lambda v: int(v['Datagrams dropped']) == len(FLAGS))
+    assert values(bus)['Reopen count'] == '0', values(bus)

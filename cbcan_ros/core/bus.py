@@ -330,19 +330,20 @@ class BusSupervisor:
         frames = self._frames
         subscribers = self._network.subscribers
         watcher = self._frame_watcher
+        receive, monotonic = bus.recv, time.monotonic
         while True:
             if self._stopping:
                 return None
             if self._fault is not None:
                 return self._fault
             try:
-                message = bus.recv(RECEIVE_POLL)
+                message = receive(RECEIVE_POLL)
             except Exception as error:  # noqa: BLE001 - any driver failure is a bus fault
                 return f'receiving failed: {error}'
             if message is None:
                 continue
             try:  # no frame, however odd, may end this thread: the bus would be deaf
-                stamp = time.monotonic()
+                stamp = monotonic()
                 if watcher is not None:
                     try:
                         watcher(message, stamp)
@@ -359,8 +360,8 @@ class BusSupervisor:
                 # Each counter has one writer (_dispatched the dispatch thread, the others this
                 # thread): no lock. Frames are waiting while the dispatch thread has not returned
                 # from all it was given.
-                waiting = self._queued != self._dispatched
-                if self._queued - self._dispatched >= DISPATCH_BACKLOG:
+                backlog = self._queued - self._dispatched
+                if backlog >= DISPATCH_BACKLOG:
                     self._dropped += 1
                     if self._dropped == 1:
                         LOGGER.error('CAN bus %s: frames arrive faster than they can be handled; '
@@ -372,18 +373,20 @@ class BusSupervisor:
                 handlers = subscribers.get(frame_id)
                 if not handlers:
                     continue  # nobody listens (an echo of ours, another master's frames)
+                waiting = backlog != 0
                 if not waiting:  # (a loop, not all(): this runs for every frame)
                     for handler in handlers:
                         if not getattr(handler, 'prompt_handler', False):
                             waiting = True
                             break
+                data = message.data
                 if waiting:
                     self._queued += 1
-                    frames.put((frame_id, message.data, stamp))
+                    frames.put((frame_id, data, stamp))
                     continue
                 for handler in handlers:
                     try:
-                        handler(frame_id, message.data, stamp)
+                        handler(frame_id, data, stamp)
                     except Exception as error:  # noqa: BLE001 - one must not deafen the rest
                         self._handler_failed(error)
             except Exception as error:  # noqa: BLE001
