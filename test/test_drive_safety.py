@@ -108,9 +108,14 @@ def velocity_of(message):
     return None
 
 
-def shown(frames) -> str:
-    """Return frames as 'id#data' text, for failure messages."""
-    return ' '.join(f'{m.arbitration_id:03X}#{bytes(m.data).hex()}' for m in frames[-40:])
+def heartbeats_left_out(frames) -> list:
+    """Return ``frames`` without the heartbeats (0x701..0x77F) that come every period."""
+    return [m for m in frames if not 0x700 <= m.arbitration_id < 0x780]
+
+
+def shown(frames, count: int = 40) -> str:
+    """Return the last ``count`` frames as 'id#data' text, for failure messages."""
+    return ' '.join(f'{m.arbitration_id:03X}#{bytes(m.data).hex()}' for m in frames[-count:])
 
 
 class Recorder(BusRecorder):
@@ -163,8 +168,10 @@ class Recorder(BusRecorder):
         try:
             return wait_until(found, timeout, what) - 1
         except AssertionError:
-            raise AssertionError(f'{what} not seen; the last frames: '
-                                 f'{shown(self.messages(since))}') from None
+            # Heartbeats left out: they would fill the frames shown.
+            frames = heartbeats_left_out(self.messages(since))
+            raise AssertionError(f'{what} not seen; the last frames but heartbeats: '
+                                 f'{shown(frames, 120)}') from None
 
 
 class Targets:

@@ -49,9 +49,13 @@ def test_a_signal_while_a_resume_waits_for_its_sync(rig):  # noqa: F811
     # The resume's frame is out: the SYNC that applies it is most of a period away (it
     # waits for two), so the signal below comes while the resume waits, however slow the
     # machine is to wake this thread.
-    axis.recorder.first(
-        lambda m: m.arbitration_id == 0x200 + NODE and not m.data[1] & (HALT >> 8),
-        "the resume's controlword without halt", before)
+    try:
+        axis.recorder.first(
+            lambda m: m.arbitration_id == 0x200 + NODE and not m.data[1] & (HALT >> 8),
+            "the resume's controlword without halt", before)
+    except AssertionError as error:  # a resume refused sends nothing: say what it answered
+        raise AssertionError(f'{error}; the resume answered {answers}; the drive shows '
+                             f'{axis.latest()}') from None
     assert not answers, answers
     since = axis.recorder.mark()
     stop_with(axis, signal.SIGINT)
