@@ -20,7 +20,7 @@ from test_diagnostics import DiagnosticsRecorder, values
 from cbcan_ros.srv import SdoRead
 
 from conftest import wait_until
-from node_process import call, private_bus, service_client
+from node_process import call, private_bus, service_client, StateWatcher
 
 DEVICE = 5
 DATAGRAMS = 20
@@ -98,20 +98,41 @@ def test_an_error_frame_of_another_program_does_not_take_the_bus_down(start_node
     assert values(bus)['Reopen count'] == '0', values(bus)
 
 
+
+# A heartbeat of node 9 saying OPERATIONAL, as python-can's pack_message lays a frame out.
+HEARTBEAT = {'arbitration_id': 0x709, 'is_extended_id': False, 'is_remote_frame': False,
+             'is_error_frame': False, 'channel': None, 'dlc': 1, 'data': b'\x05',
+             'is_fd': False, 'bitrate_switch': False, 'error_state_indicator': False}
 FLAGS = ('is_extended_id', 'is_remote_frame', 'is_error_frame', 'is_fd', 'bitrate_switch',
          'error_state_indicator', 'is_rx')
+# Each is a frame python-can 4.6.1 takes whatever its field types: a flag of another type
+# (its check takes 1 for True), a CAN FD frame (the driver opens for FD by default; CANopen
+# here runs on classic CAN), a dlc of 1.0 or True, data that is no msgpack bin (python-can
+# makes bytes of it: 1 becomes b'\x00', a boot-up; [5] an OPERATIONAL heartbeat).
+ODD_HEARTBEATS = ([{**HEARTBEAT, flag: 0} for flag in FLAGS] + [
+    {**HEARTBEAT, 'is_fd': True},
+    {**HEARTBEAT, 'is_fd': True, 'dlc': 64, 'data': b'\x05' * 64},
+    {**HEARTBEAT, 'dlc': 1.0},
+    {**HEARTBEAT, 'dlc': True},
+    {**HEARTBEAT, 'data': 1},
+    {**HEARTBEAT, 'data': [5]},
+    {**HEARTBEAT, 'data': [True]},
+])
+WELL_FORMED = 0x760  # node 96's heartbeat: once it shows, every odd one before it was taken
 
 
-def test_frames_whose_flags_are_no_booleans_are_dropped_and_counted(start_node, client_node,
+def test_frames_of_other_types_are_dropped_counted_and_show_no_node(start_node, client_node,
                                                                     start_durand):
-    # python-can's check takes 1 for True; CANopen code reading such a frame was never
-    # meant to see it. Each is a heartbeat of node 9 with one flag of another type.
     group, port, name, node, sdo_read, request = _gateway(start_node, client_node, start_durand)
     recorder = DiagnosticsRecorder(client_node)
-    for flag in FLAGS:
-        _send(group, port, {'arbitration_id': 0x709, 'data': b'\x05', flag: 0})
+    states = StateWatcher(client_node, name)
+    for frame in ODD_HEARTBEATS:
+        _send(group, port, frame)
         answer = call(sdo_read, request, 'sdo_read', node)
-        assert answer.success, f'sdo_read after a frame with {flag}=0: {answer.message}'
+        assert answer.success, f'sdo_read after {frame}: {answer.message}'
+    _send(group, port, {**HEARTBEAT, 'arbitration_id': WELL_FORMED})
+    wait_until(lambda: 96 in states.latest(), 10.0, 'the well-formed heartbeat shown')
+    assert 9 not in states.latest(), f'an odd frame showed node 9: {states.latest()}'
     bus = recorder.wait_for(f'{name}: CAN bus', DiagnosticStatus.OK, timeout=10.0,
-                            where=lambda v: int(v['Datagrams dropped']) == len(FLAGS))
+                            where=lambda v: int(v['Datagrams dropped']) == len(ODD_HEARTBEATS))
     assert values(bus)['Reopen count'] == '0', values(bus)
