@@ -312,36 +312,49 @@ class DriveObjects:
         return self.read(INITIAL_READS, timeout)
 
     def read_held(self, timeout: float) -> 'Future[None]':
-        """Read the objects its RPDOs map that the gateway does not command, when not yet.
+        """Read what its RPDOs map and the gateway has no value of, when not yet.
 
-        Once per mapping read (and again after a boot): their bytes go into every frame of
-        those RPDOs as the drive holds them (``frames.usable_frames``); until they are
-        read, those RPDOs are not used. Resolves once they are read (at once when there is
-        nothing to read).
+        Once per mapping read (and again after a boot), and at each poll while a read
+        failed: the objects the gateway does not command, whose bytes go into every frame of
+        those RPDOs as the drive holds them (``frames.usable_frames``), and the commanded
+        ones the initial read missed (a request that timed out on a busy bus). Until they
+        are read, those RPDOs are not used: the controlword goes by SDO. Resolves once they
+        are read (at once when there is nothing to read).
         """
         reads = self.mapping_reads()
         with self._lock:
             if not reads or reads == self._held_reads:
                 return resolved(None)
             self._held_reads = reads
+            known = set(self.commanded)
         _, rpdos = self._pdo.mappings(self.node_id)
-        others = sorted({(entry.index, entry.subindex) for mapping in rpdos.values()
-                         for entry in mapping.entries if not entry.dummy
-                         and (entry.subindex != 0 or entry.index not in COMMANDED)})
-        if not others:
+        mapped = {(entry.index, entry.subindex) for mapping in rpdos.values()
+                  for entry in mapping.entries if not entry.dummy}
+        others = sorted(key for key in mapped if key[1] != 0 or key[0] not in COMMANDED)
+        unknown = sorted(index for index, subindex in mapped
+                         if subindex == 0 and index in COMMANDED and index not in known)
+        if not others and not unknown:
             return resolved(None)
-        batch = self._sdo_batch([Access(self.node_id, index, sub) for index, sub in others],
+        batch = self._sdo_batch([Access(self.node_id, index, sub) for index, sub in others]
+                                + [Access(self.node_id, index, 0) for index in unknown],
                                 timeout)
         done: Future = Future()
 
         def keep(finished: Future) -> None:
+            results = finished.result()
             with self._lock:
                 if self._held_reads != reads:  # read again meanwhile, or it booted
                     answer(done, None)
                     return
                 self._held = {key: bytes(result.data) for key, result
-                              in zip(others, finished.result(), strict=True) if result.success}
-                if len(self._held) < len(others):
+                              in zip(others, results[:len(others)], strict=True)
+                              if result.success}
+                # A value commanded since the request went out is the newer one.
+                self.know({index: decode(index, result.data) for index, result
+                           in zip(unknown, results[len(others):], strict=True)
+                           if result.success and index not in self.commanded})
+                if (len(self._held) < len(others)
+                        or any(index not in self.commanded for index in unknown)):
                     self._held_reads = -1  # a read failed: tried again at the next poll
             answer(done, None)
         batch.add_done_callback(keep)
