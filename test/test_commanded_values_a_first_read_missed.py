@@ -3,10 +3,9 @@
 An RPDO frame carries every object it maps: the gateway fills those it commands with its
 last value, read from the drive when it is first heard. An object that read missed (the
 drive's answer timed out on a busy bus) left every RPDO mapping it unused for good, since a
-frame would carry a value of the gateway's making: the controlword went by SDO, and a resume
-meant to wait for its synchronous RPDO was applied at once (seen once in about 50 runs under
-busy-cores). Now the values missed are read again with the objects the RPDOs hold, at once
-and then at each poll until they are in, and the frames go out as mapped.
+frame would carry a value of the gateway's making: every controlword went by SDO. Now the
+values missed are read again with the objects the RPDOs hold, at once and then at each poll
+until they are in, and the frames go out as mapped.
 """
 
 import struct
