@@ -98,7 +98,6 @@ def test_an_error_frame_of_another_program_does_not_take_the_bus_down(start_node
     assert values(bus)['Reopen count'] == '0', values(bus)
 
 
-
 # A heartbeat of node 9 saying OPERATIONAL, as python-can's pack_message lays a frame out.
 HEARTBEAT = {'arbitration_id': 0x709, 'is_extended_id': False, 'is_remote_frame': False,
              'is_error_frame': False, 'channel': None, 'dlc': 1, 'data': b'\x05',

@@ -44,7 +44,7 @@ def drop_foreign_datagrams(bus: can.BusABC, on_dropped: Callable[[], None]) -> b
         if not received:
             return None, False
         datagram, _sender, stamp = received
-        message = frame_of_this_bus(datagram, stamp)
+        message = _frame_of_this_bus(datagram, stamp)
         if message is None:
             on_dropped()
             return None, False
@@ -53,7 +53,7 @@ def drop_foreign_datagrams(bus: can.BusABC, on_dropped: Callable[[], None]) -> b
     return True
 
 
-def frame_of_this_bus(datagram: bytes, stamp: float) -> Optional[can.Message]:
+def _frame_of_this_bus(datagram: bytes, stamp: float) -> Optional[can.Message]:
     """Return the classic CAN frame ``datagram`` carries (received at ``stamp``), else None.
 
     The datagram as python-can's ``pack_message`` makes it: a msgpack map of ``Message``'s
