@@ -45,6 +45,7 @@ from node_process import (
     private_bus,
     service_client,
     START_TIMEOUT,
+    StateWatcher,
     STOP_TIMEOUT,
 )
 
@@ -217,6 +218,7 @@ class DriveRig:
             *parameters), self.port, program)
         self._lock = threading.Lock()
         self.states = []
+        self.node_states = StateWatcher(client_node, self.name)
         client_node.create_subscription(DriveState, f'{self.name}/node_{NODE}/drive_state',
                                         self._keep, STATE_QOS)
         self.publisher = client_node.create_publisher(
@@ -289,6 +291,10 @@ class DriveRig:
             node_id=NODE, command=1), 'nmt start', self.node)
         assert answer.success, answer.message
         wait_until(lambda: self.drive.state == 5, ANSWER, 'the drive OPERATIONAL')
+        # The gateway uses the drive's PDOs once its heartbeat says OPERATIONAL, up to a
+        # heartbeat period after the drive is: a command before that goes by SDO, at once.
+        wait_until(lambda: self.node_states.latest().get(NODE) == 'OPERATIONAL', ANSWER,
+                   'the gateway hearing the drive OPERATIONAL')
 
     def stream(self, value: float = VELOCITY) -> Targets:
         """Publish ``value`` as the drive's target every 20 ms until the test ends."""

@@ -54,8 +54,8 @@ def test_a_signal_while_a_resume_waits_for_its_sync(rig):  # noqa: F811
             lambda m: m.arbitration_id == 0x200 + NODE and not m.data[1] & (HALT >> 8),
             "the resume's controlword without halt", before)
     except AssertionError as error:  # a resume refused sends nothing: say what it answered
-        # Seen about once in 40 runs under busy-cores: the resume's controlword went by SDO
-        # (as when the gateway finds no usable RPDO for it) and was answered at once.
+        # A resume sent by SDO (the gateway counting no RPDO of the drive usable) is
+        # answered at once: the answer says which.
         raise AssertionError(f'{error}; the resume answered {answers}; the drive shows '
                              f'{axis.latest()}; the gateway logged: '
                              f'{axis.node.output()[-2000:]}') from None
