@@ -31,6 +31,13 @@ from cbcan_ros.simulation.durand.drive_objects import (
     TARGET_VELOCITY,
 )
 from cbcan_ros.simulation.durand.drive_pdos import drive_pdos as layout_pdos
+from cbcan_ros.simulation.durand.drive_pdos import (
+    EVENT_DRIVEN,
+    MOTION,
+    SYNCHRONOUS,
+    TIMER_DRIVEN,
+)
+from cbcan_ros.simulation.durand.pdos import PdoConfig
 from cbcan_ros.simulation.simulated_drives import LAYOUTS
 
 from conftest import wait_for_future, wait_until
@@ -43,6 +50,7 @@ EXAMPLE_EDS = ROOT / 'config' / 'cia402_drive.eds'  # the vendor layout
 # The mapping of each RPDO (COB-ID 0x200 + 0x100 * (n - 1) + node) in a layout.
 RPDO_COB_IDS = {1: 0x200, 2: 0x300, 3: 0x400, 4: 0x500}
 SDO_REQUEST = 0x600
+SYNC = 0x80
 EXPEDITED_DOWNLOAD = 0x20  # command specifier 1 of a client's SDO request
 OK, WARN = b'\x00', b'\x01'  # diagnostic levels
 
@@ -466,3 +474,55 @@ def test_a_stream_of_targets_that_are_not_sent_is_logged_once(rig, caplog):
     # just before its caller hears it, so the line may follow the count by a moment.
     wait_until(lines, WAIT, 'the line saying a target was not sent')
     assert len(lines()) == 1, lines()
+
+
+# ros2_canopen's RPDOs with the targets' RPDO synchronous, the controlword's not (as a bus.yml
+# can set them): the controlword and the mode are applied as they come, the targets only at
+# the SYNC after their frame. TPDO 2 (position, velocity) every 10 ms shows any motion.
+MIXED = (PdoConfig('tpdo', 1, ((0x6041, 0), (0x6061, 0)), EVENT_DRIVEN, event_timer=20),
+         PdoConfig('tpdo', 2, MOTION, TIMER_DRIVEN, event_timer=10),
+         PdoConfig('rpdo', 1, ((cia402.CONTROLWORD, 0), (cia402.MODE, 0)), EVENT_DRIVEN),
+         PdoConfig('rpdo', 2, ((TARGET_POSITION, 0), (TARGET_VELOCITY, 0)), SYNCHRONOUS),
+         *(PdoConfig(kind, number, (), enabled=False)
+           for kind in ('tpdo', 'rpdo') for number in (3, 4)))
+
+
+@pytest.mark.parametrize('command', ['enable', 'set_mode'])
+def test_a_holding_target_in_a_synchronous_rpdo_is_applied_before_the_mode_it_holds(rig,
+                                                                                   command):
+    # Another master left a target far away in 0x607A. Entering CSP, the drive follows
+    # 0x607A at once: the target that holds the axis (its actual position) goes first, in
+    # the synchronous RPDO 2, and the mode and the controlword in RPDO 1 must wait for the
+    # SYNC that applies it, or the drive runs to the stale target meanwhile.
+    axis = rig(pdos=MIXED, **{'sync.period': 0.05})
+    gateway = axis.gateway.node.gateway
+    wait_until(lambda: gateway.monitor.status(NODE).state == OPERATIONAL
+               and gateway.pdo.mappings(NODE)[1], WAIT, 'the RPDOs read, the drive OPERATIONAL')
+    if command == 'set_mode':
+        axis.enable(PP)
+    start = axis.drive.position
+    axis.drive.set_value(TARGET_POSITION, 0, struct.pack('<i', start + 50000))
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        answer = axis.command(command, CSP)
+        assert answer.success, answer.message
+        assert answer.mode == CSP
+
+        def after_the_mode(seen):  # two SYNCs of motion feedback after the mode was sent
+            sent = [n for n, m in enumerate(seen)
+                    if m.arbitration_id == 0x200 + NODE and m.data[2] == CSP]
+            return sent and sum(m.arbitration_id == SYNC for m in seen[sent[0]:]) >= 2
+        watch(bus, frames, after_the_mode, 'two SYNCs after the mode CSP in RPDO 1')
+    finally:
+        bus.shutdown()
+    positions = {struct.unpack_from('<i', m.data)[0] for m in frames
+                 if m.arbitration_id == 0x280 + NODE}
+    assert positions == {start}, f'the drive moved from {start}: {sorted(positions)}'
+    assert axis.drive.position == start
+    hold = next(n for n, m in enumerate(frames) if m.arbitration_id == 0x300 + NODE
+                and struct.unpack_from('<i', m.data)[0] == start)
+    mode = next(n for n, m in enumerate(frames)
+                if m.arbitration_id == 0x200 + NODE and m.data[2] == CSP)
+    assert any(m.arbitration_id == SYNC for m in frames[hold:mode]), (
+        'the mode went before the SYNC that applies the holding target: '
+        + ' '.join(f'{m.arbitration_id:03X}#{bytes(m.data).hex()}' for m in frames[:mode + 1]))

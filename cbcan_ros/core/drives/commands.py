@@ -207,6 +207,17 @@ class DriveCommands:
         ``halt``: set or release the halt with them; ``stopping``: filled with the target
         that stops the axis (both as ``DriveService.send``).
         """
+        indexes = [*values, *([cia402.CONTROLWORD] if halt is not None else [])]
+        at_once, at_sync = drive.objects.timing(indexes)
+        stop = bool(halt) or stopping is not None or cia402.stops(
+            values.get(cia402.CONTROLWORD, cia402.ENABLE_OPERATION))
+        pending = drive.applied_at_sync
+        if at_once and not stop and pending is not None and not pending.done():
+            # A step before this one waits in a synchronous RPDO (a holding target): applied
+            # after this step's frames, it would come too late (the drive would take the new
+            # mode or enable with the target it held before). A stop goes at once all the
+            # same: early is what it wants.
+            await asyncio.shield(pending)
         mark = drive.updates
         try:
             sent = self._service.send(drive, values, SEND_TIMEOUT, READS_AT_START.get(),
@@ -220,6 +231,9 @@ class DriveCommands:
             named = result.message.startswith(f'node {drive.node_id} ')
             raise DriveFailed(result.message if named
                               else f'node {drive.node_id}: {result.message}', result.abort_code)
+        if at_sync:
+            drive.applied_at_sync = asyncio.ensure_future(
+                until_applied_at_sync(self._service.sync))
         if cia402.STATUSWORD not in drive.objects.mapped_feedback():
             self._service.request_feedback(drive)
         return mark

@@ -412,6 +412,19 @@ class DriveObjects:
         chosen = self._plan([index], commanded, cia402.CONTROLWORD in commanded)
         return any(frame.synchronous and index in frame.indexes for frame in chosen.frames)
 
+    def timing(self, indexes: Iterable[int]) -> Tuple[bool, bool]:
+        """Return whether a write of ``indexes`` now has parts applied (at once, at a SYNC).
+
+        At once: what goes by SDO or in an event-driven RPDO; at the next SYNC: what goes
+        in a synchronous RPDO.
+        """
+        with self._lock:
+            commanded = {**dict.fromkeys(indexes, 0), **self.commanded}
+        chosen = self._plan(list(dict.fromkeys(indexes)), commanded,
+                            cia402.CONTROLWORD in commanded)
+        return (bool(chosen.by_sdo) or any(not frame.synchronous for frame in chosen.frames),
+                any(frame.synchronous for frame in chosen.frames))
+
     def _plan(self, indexes: List[int], commanded: Dict[int, int],
               controlword_known: bool) -> Plan:
         """Return how a write of ``indexes`` goes out now (``frames.plan``)."""

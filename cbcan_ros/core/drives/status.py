@@ -111,6 +111,9 @@ class DriveRecord:
     profile_velocity: int = 0  # 0x6081 as read when heard: what a move with velocity 0 uses
     pp_goal: Optional[int] = None  # the last PP set-point given since its enable: relative base
     unwatched: str = ''  # why it would run on if the gateway died (enable refused), or ''
+    # Ends once the frames of its last command step sent in synchronous RPDOs are applied (an
+    # asyncio task of the drives' loop; None: none sent).
+    applied_at_sync: Optional[object] = None
     waiters: List[Callable[[], None]] = field(default_factory=list)
     # Held from deciding what to send (a target, a halt, a stop, a step) until it is handed
     # to the bus: the drive gets frames in the order they were decided. Taken before the
