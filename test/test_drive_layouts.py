@@ -438,6 +438,38 @@ def test_an_rpdo_mapping_an_object_the_gateway_does_not_command_repeats_the_driv
     assert axis.drive.value(MAX_TORQUE, 0) == struct.pack('<H', 1000)
 
 
+def test_a_value_written_by_sdo_through_the_gateway_is_what_its_rpdo_repeats(rig):
+    # The user lowers the max torque (0x6072) that RPDO 2 maps beside the target velocity,
+    # with the gateway's own sdo_write: the frames after it must carry the new limit, not
+    # the copy read when the drive was heard, or the next target would undo the limit.
+    pdos = tuple(replace(pdo, mapping=((TARGET_VELOCITY, 0), (MAX_TORQUE, 0)))
+                 if (pdo.kind, pdo.number) == ('rpdo', 2) else pdo for pdo in layout_pdos(
+                     'combined'))
+    axis = rig(pdos=pdos)
+    axis.enable(CSV)
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        def streamed(value):
+            def sent(seen):
+                axis.target.publish(Float64(data=value))
+                return any(m.arbitration_id == 0x300 + NODE
+                           and struct.unpack_from('<i', m.data)[0] == value * SCALE
+                           for m in seen)
+            return sent
+        watch(bus, frames, streamed(1.0), 'RPDO 2 on the bus')
+        written = axis.gateway.call('sdo_write', node_id=NODE, index=MAX_TORQUE, subindex=0,
+                                    data=list(struct.pack('<H', 300)))
+        assert written.success, written.message
+        del frames[:]
+        watch(bus, frames, streamed(2.0), 'RPDO 2 with the next target')
+    finally:
+        bus.shutdown()
+    sent = [struct.unpack_from('<iH', m.data) for m in frames
+            if m.arbitration_id == 0x300 + NODE]
+    assert sent[-1] == (2000, 300), sent
+    assert axis.drive.value(MAX_TORQUE, 0) == struct.pack('<H', 300)
+
+
 def test_a_cancelled_move_halts_the_drive_where_it_is(rig, layout):
     axis = rig(pdos=layout_pdos(layout))
     axis.enable(PP)

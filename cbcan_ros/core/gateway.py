@@ -332,7 +332,10 @@ class Gateway:
     def sdo_write(self, node_id: int, index: int, subindex: int, data: bytes,
                   timeout: float = 0.0) -> 'Future[SdoResult]':
         """Write ``data`` to ``index:subindex`` of ``node_id`` (0 = own dictionary)."""
-        return self._single(Access(node_id, index, subindex, True, bytes(data)), timeout)
+        access = Access(node_id, index, subindex, True, bytes(data))
+        written = self._single(access, timeout)
+        written.add_done_callback(lambda done: self._tell_drives([access], done))
+        return written
 
     def sdo_stream(self, access: Access, answer_within: float,
                    written: Callable[[int], Optional[str]]) -> 'Future[SdoResult]':
@@ -355,7 +358,24 @@ class Gateway:
         ``stop(results so far)``, asked before each access of a device's part is sent, says
         why the rest of that part must not be sent, or None.
         """
-        return self._batch(accesses, timeout, False, stop)
+        done = self._batch(accesses, timeout, False, stop)
+        if any(access.write for access in accesses):
+            done.add_done_callback(lambda finished: self._tell_drives(accesses, finished))
+        return done
+
+    def _tell_drives(self, accesses: Sequence[Access], done: Future) -> None:
+        """Tell the drive service what a caller wrote: its RPDO frames repeat what it holds.
+
+        ``done``: the write's future (one result, or a batch's list).
+        """
+        if done.cancelled():  # a caller gave up on it (asyncio.wrap_future cancels)
+            return
+        results = done.result()
+        for access, result in zip(accesses, results if isinstance(results, list) else [results],
+                                  strict=True):
+            if access.write and result.success:
+                self.drives.written(access.node_id, access.index, access.subindex,
+                                    access.data)
 
     def _batch(self, accesses: Sequence[Access], timeout: float,
                drive_stop: bool, stop=None) -> 'Future[List[SdoResult]]':

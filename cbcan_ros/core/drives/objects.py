@@ -360,6 +360,20 @@ class DriveObjects:
         batch.add_done_callback(keep)
         return done
 
+    def written(self, index: int, subindex: int, data: bytes) -> None:
+        """Take ``data``, confirmed written by SDO, as what the drive holds in ``index``.
+
+        For an object its RPDOs map and the gateway does not command (``read_held``), by a
+        caller's write through the gateway (a lower max torque, an offset): the frames carry
+        it from then on, not the copy read when the drive was heard, which would undo it.
+        """
+        key = (index, subindex)
+        with self._lock:
+            if key not in self._held:
+                return
+            self._held = {**self._held, key: bytes(data)}  # replaced, never changed (_plan)
+        self._pdo.carry(self.node_id, [EntryValue(index, subindex, data=bytes(data))])
+
     def know_commanded(self, values: Dict[int, int]) -> None:
         """Take the commanded objects among ``values`` (an initial read) as the drive's now."""
         self.know({index: value for index, value in values.items() if index in COMMANDED})
