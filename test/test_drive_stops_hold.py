@@ -12,6 +12,7 @@ from dataclasses import replace
 import struct
 
 from action_msgs.msg import GoalStatus
+import pytest
 from sensor_msgs.msg import JointState
 from test_drive_layouts import move
 import test_drives
@@ -200,8 +201,10 @@ def test_joint_commands_for_a_drive_not_heard_say_so(rig, caplog):
     wait_until(refused, WAIT, 'the target refused as not heard, in the log')
 
 
-def test_a_move_on_a_drive_without_profile_position_is_refused_before_anything_is_sent(
-        ros_context, start_durand):
+@pytest.mark.parametrize('what', ['move', 'home'])
+def test_a_move_or_homing_on_a_drive_without_that_mode_is_refused_before_anything_is_sent(
+        ros_context, start_durand, what):
+    # 0x6502 lists CSV alone: neither profile position (a move) nor homing.
     channel = new_channel()
     drive = start_durand(NODE, kind=DurandDrive, channel=channel,
                          pdos=drive_pdos('combined'), modes=(CSV,))
@@ -212,12 +215,17 @@ def test_a_move_on_a_drive_without_profile_position_is_refused_before_anything_i
         assert gateway.call('nmt_command', node_id=NODE, command=1).success
         wait_until(lambda: gateway.call('drive_command', node_id=NODE, command='enable',
                                         mode=CSV).success, WAIT, 'the drive enabled in CSV')
-        future, _cancel = gateway.node.gateway.drives.move(NODE, 1000)
-        refused = future.result(WAIT)
+        if what == 'move':
+            future, _cancel = gateway.node.gateway.drives.move(NODE, 1000)
+            refused, missing = future.result(WAIT), 'profile position'
+        else:  # answered at once, not after homing's 60 s default timeout
+            refused = gateway.call('drive_command', node_id=NODE, command='home', wait=WAIT)
+            missing = 'homing'
         assert not refused.success
-        assert 'does not support profile position' in refused.message, refused.message
+        assert f'does not support {missing}' in refused.message, refused.message
         assert 'nothing was sent' in refused.message
         assert drive.value(0x6060, 0) == struct.pack('<b', CSV)
+        assert drive.drive_state == 'OPERATION_ENABLED'
     finally:
         gateway.close()
 

@@ -543,6 +543,54 @@ def test_nan_and_out_of_range_targets_are_refused_and_nothing_moves(rig):
     assert axis.drive.velocity == 0
 
 
+def move_goal(axis, **fields):
+    """Send a ~/move goal to the drive with ``fields``; return its result."""
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    goal = wait_for_future(axis.mover.send_goal_async(DriveMove.Goal(node_id=NODE, **fields)),
+                           WAIT)
+    return wait_for_future(goal.get_result_async(), WAIT).result
+
+
+def test_a_move_slower_than_a_count_per_second_or_backwards_is_refused(rig):
+    # 0.0004 rad/s is 0.4 counts/s: rounded to 0 it would be the drive's profile velocity,
+    # 25,000 times faster than asked. A negative velocity has no meaning for a move.
+    axis = rig()
+    axis.enable(PP)
+    for velocity, said in ((0.0004, '0.4 counts/s at node_7.velocity_scale 1000: below the 1 '
+                                    'count/s a drive takes'),
+                           (-5.0, 'velocity -5.0 must be 0')):
+        result = move_goal(axis, position=2.0, velocity=velocity)
+        assert not result.success
+        assert said in result.message and 'nothing was sent' in result.message, result.message
+    assert axis.drive.position == 0
+    assert move_goal(axis, position=0.002, velocity=0.001).success  # 1 count/s
+
+
+def test_an_int_given_for_a_float_field_is_refused_naming_the_number_meant(rig, caplog):
+    # rclpy (Jazzy) sends a Python int in a float64 field as a tiny number: 5 arrives as
+    # 5e-324, which as a timeout would end a command at once, and as a target drive the
+    # axis to 0.
+    caplog.set_level(logging.WARNING, logger='cbcan_ros.ros.drives')
+    axis = rig()
+    refused = axis.command('enable', PP, timeout=5)
+    assert not refused.success
+    assert 'timeout 5e-324 is what rclpy sends for a Python int' in refused.message
+    assert axis.drive.drive_state == 'SWITCH_ON_DISABLED'
+    axis.enable(PP)
+    for field in ('position', 'velocity', 'timeout'):
+        fields = {'position': 2.0, 'velocity': 1.0, field: 3}
+        result = move_goal(axis, **fields)
+        assert not result.success
+        assert f'{field} 5e-324 is what rclpy sends' in result.message, result.message
+    axis.enable(CSP)
+    axis.target.publish(Float64(data=0.5))
+    wait_until(lambda: axis.drive.position == 500, WAIT, 'the drive at 500 counts (CSP)')
+    axis.target.publish(Float64(data=5))
+    wait_until(lambda: 'target 5e-324 is what rclpy sends' in caplog.text, WAIT,
+               'the int target refused, in the log')
+    assert axis.drive.position == 500
+
+
 def test_cancelling_a_replaced_goal_leaves_the_new_goal_running(rig):
     axis = rig()
     axis.enable(PP)

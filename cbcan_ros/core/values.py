@@ -8,6 +8,7 @@ little-endian, as CANopen sends them. An object's type in an EDS maps onto one o
 
 import math
 import struct
+import sys
 from typing import Optional, Sequence, Union
 
 from canopen.objectdictionary import datatypes
@@ -37,6 +38,20 @@ _DATA_TYPE_NAMES = {code: name for name, code in vars(datatypes).items()
                     if name.isupper() and isinstance(code, int)}
 
 Value = Union[int, float, str, bytes]
+
+
+def int_given_as_float(name: str, value: float) -> Optional[str]:
+    """Return why a float64 field's ``value`` looks like a Python int put there, or None.
+
+    rclpy (Jazzy, without ``ROS_PYTHON_CHECK_FIELDS``) serializes an int in a float64 field
+    as a tiny number, whatever the int: 5 and 1000 both arrive as 5e-324 (a negative one as
+    NaN). No caller means a number below the smallest normal float, so it is refused; the
+    number meant cannot be told.
+    """
+    if not 0 < abs(value) < sys.float_info.min:
+        return None
+    return (f'{name} {value} is what rclpy sends for a Python int put in a float64 field '
+            f'(the number is lost on the way): give it as a float, 5.0 not 5')
 
 
 def type_of(data_type: Optional[int]) -> str:

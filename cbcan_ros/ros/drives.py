@@ -36,6 +36,7 @@ from ..action import DriveMove
 from ..core.drives import cia402
 from ..core.drives.service import DriveService
 from ..core.drives.status import DriveResult, DriveStatus, failed
+from ..core.values import int_given_as_float
 from ..msg import DriveState
 from .drive_parameters import Joint
 from .goals import cancel_goal
@@ -211,7 +212,12 @@ class DriveTopics:
     # Targets.
 
     def _on_target(self, node_id: int, message: Float64) -> None:
-        self._send_target(self._joints[node_id], message.data, f'node_{node_id}/target')
+        topic = f'node_{node_id}/target'
+        problem = int_given_as_float('target', message.data)
+        if problem:  # a JointState's arrays take ints as they are: only this field
+            self._log_refusal(f'{topic}: {problem}; nothing was sent', node_id)
+            return
+        self._send_target(self._joints[node_id], message.data, topic)
 
     def _on_joint_commands(self, message: JointState) -> None:
         targets = self._targets_of(message)
@@ -316,19 +322,33 @@ class DriveTopics:
                                     and math.isfinite(goal.velocity)):
             refusal = (f'position {goal.position} and velocity {goal.velocity} must be '
                        f'finite numbers; nothing was sent')
+        if refusal is None:
+            refusal = next(filter(None, (int_given_as_float(name, getattr(goal, name))
+                                         for name in ('position', 'velocity', 'timeout'))), None)
+            refusal = refusal and f'{refusal}; nothing was sent'
         if refusal is None and not (math.isfinite(goal.timeout) and goal.timeout >= 0):
             refusal = (f'timeout {goal.timeout} must be 0 (the default, 60 s) or more '
                        f'seconds; nothing was sent')
+        if refusal is None and goal.velocity < 0:
+            refusal = (f"velocity {goal.velocity} must be 0 (the drive's profile velocity, "
+                       f'0x6081) or more: the position gives the direction; nothing was sent')
         if refusal:
             goal_handle.abort()
             return DriveMove.Result(success=False, message=refusal)
         position = joint.to_device(cia402.PROFILE_POSITION, goal.position, goal.relative)
-        velocity = abs(goal.velocity * joint.velocity_scale)
+        velocity = abs(goal.velocity * joint.velocity_scale)  # the scale may flip the axis
         if not (math.isfinite(position) and math.isfinite(velocity)):
             goal_handle.abort()
             return DriveMove.Result(success=False, message=(
                 f'position {goal.position} or velocity {goal.velocity} does not fit the '
                 f"drive's units (node_{joint.node_id} scales); nothing was sent"))
+        if goal.velocity and not round(velocity):
+            # 0 would be the drive's own profile velocity: a slow move must not run at that.
+            goal_handle.abort()
+            return DriveMove.Result(success=False, message=(
+                f'velocity {goal.velocity} is {velocity:g} counts/s at '
+                f'node_{joint.node_id}.velocity_scale {joint.velocity_scale:g}: below the 1 '
+                f'count/s a drive takes (0 means its profile velocity); nothing was sent'))
 
         def feedback(status: DriveStatus) -> None:
             goal_handle.publish_feedback(DriveMove.Feedback(

@@ -11,6 +11,7 @@ from typing import Callable, Dict, Optional
 from ..sdo import abort_codes
 from ..sdo.requests import check_node_id, MAX_TIMEOUT
 from ..text import quoted
+from ..values import int_given_as_float
 from . import cia402
 from .status import DriveRecord, DriveResult, DriveStatus, failed, shown
 
@@ -128,6 +129,9 @@ def request_problem(command: str, mode: int, timeout: float) -> Optional[str]:
         return f'mode {mode} is not a CiA 402 mode of operation: allowed 0 (keep), {allowed}'
     if command == 'set_mode' and not mode:
         return f'set_mode needs a mode: {", ".join(map(str, MODES))}'
+    problem = int_given_as_float('timeout', timeout)
+    if problem:
+        return problem
     if not (timeout == 0 or 0 < timeout <= MAX_TIMEOUT):
         return (f'timeout {timeout} is out of range: allowed 0 (the default) or up to '
                 f'{MAX_TIMEOUT:g} s')
@@ -154,6 +158,7 @@ def state_problem(status: DriveStatus, heard: bool, enabled: bool) -> Optional[s
 
 def command_problem(status: DriveStatus, command: str, mode: int) -> Optional[str]:
     """Return why ``command`` with ``mode`` cannot run on this drive now, or None."""
+    mode = cia402.HOMING if command == 'home' else mode
     if mode and status.supported_modes and not cia402.supports(status.supported_modes, mode):
         have = [cia402.mode_name(code) for code in MODES
                 if cia402.supports(status.supported_modes, code)]

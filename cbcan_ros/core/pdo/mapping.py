@@ -8,10 +8,11 @@ from the EDS when given, else unsigned.
 from dataclasses import dataclass, replace
 import math
 import struct
-import sys
 from typing import Optional, Sequence, Tuple
 
 from canopen.objectdictionary import datatypes, ObjectDictionary
+
+from ..values import int_given_as_float
 
 MAX_PDOS = 512
 MAX_ENTRIES = 64          # CiA 301: sub-indices 1..64 of a mapping record
@@ -81,12 +82,9 @@ class MappedEntry:
                 raise ValueError(f'{self.label}: {value} does not fit a '
                                  f'{self.bits}-bit float') from None
         if not math.isfinite(value) or not float(value).is_integer():
-            hint = ''
-            if 0 < abs(value) < sys.float_info.min:
-                whole = struct.unpack('<q', struct.pack('<d', value))[0]
-                hint = (f' (rclpy sends a Python int put in a float64 field as its bits: '
-                        f'was {whole} meant? Give it as a float, {whole}.0)')
-            raise ValueError(f'{self.label}: {value} is not a whole number{hint}')
+            hint = int_given_as_float('the value', value)
+            raise ValueError(f'{self.label}: {value} is not a whole number'
+                             + (f' ({hint})' if hint else ''))
         number = int(value)
         signed = self.data_type in _SIGNED
         low = -(1 << (self.bits - 1)) if signed else 0
