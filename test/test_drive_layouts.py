@@ -462,11 +462,21 @@ def test_a_value_written_by_sdo_through_the_gateway_is_what_its_rpdo_repeats(rig
         assert written.success, written.message
         del frames[:]
         watch(bus, frames, streamed(2.0), 'RPDO 2 with the next target')
+        after_it = [struct.unpack_from('<iH', m.data) for m in frames
+                    if m.arbitration_id == 0x300 + NODE]
+        # A write the drive refuses (one byte for a 16-bit object) changes nothing it holds:
+        # the frames go on carrying 300.
+        refused = axis.gateway.call('sdo_write', node_id=NODE, index=MAX_TORQUE, subindex=0,
+                                    data=[7])
+        assert not refused.success
+        del frames[:]
+        watch(bus, frames, streamed(3.0), 'RPDO 2 after the refused write')
     finally:
         bus.shutdown()
+    assert after_it[-1] == (2000, 300), after_it
     sent = [struct.unpack_from('<iH', m.data) for m in frames
             if m.arbitration_id == 0x300 + NODE]
-    assert sent[-1] == (2000, 300), sent
+    assert sent[-1] == (3000, 300), sent
     assert axis.drive.value(MAX_TORQUE, 0) == struct.pack('<H', 300)
 
 

@@ -558,6 +558,7 @@ def test_a_move_slower_than_a_count_per_second_or_backwards_is_refused(rig):
     axis.enable(PP)
     for velocity, said in ((0.0004, '0.4 counts/s at node_7.velocity_scale 1000: below the 1 '
                                     'count/s a drive takes'),
+                           (0.0009, '0.9 counts/s'),  # not rounded up to twice as fast
                            (-5.0, 'velocity -5.0 must be 0')):
         result = move_goal(axis, position=2.0, velocity=velocity)
         assert not result.success

@@ -333,8 +333,9 @@ class Gateway:
                   timeout: float = 0.0) -> 'Future[SdoResult]':
         """Write ``data`` to ``index:subindex`` of ``node_id`` (0 = own dictionary)."""
         access = Access(node_id, index, subindex, True, bytes(data))
+        settle = self._held_by_drives([access])
         written = self._single(access, timeout)
-        written.add_done_callback(lambda done: self._tell_drives([access], done))
+        written.add_done_callback(settle)
         return written
 
     def sdo_stream(self, access: Access, answer_within: float,
@@ -358,24 +359,35 @@ class Gateway:
         ``stop(results so far)``, asked before each access of a device's part is sent, says
         why the rest of that part must not be sent, or None.
         """
+        settle = self._held_by_drives(accesses)
         done = self._batch(accesses, timeout, False, stop)
-        if any(access.write for access in accesses):
-            done.add_done_callback(lambda finished: self._tell_drives(accesses, finished))
+        done.add_done_callback(settle)
         return done
 
-    def _tell_drives(self, accesses: Sequence[Access], done: Future) -> None:
-        """Tell the drive service what a caller wrote: its RPDO frames repeat what it holds.
+    def _held_by_drives(self, accesses: Sequence[Access]) -> Callable[[Future], None]:
+        """Put the values ``accesses`` write into the drives' RPDO frames, before they go.
 
-        ``done``: the write's future (one result, or a batch's list).
+        So no frame of a drive undoes a caller's write of an object it maps beside the
+        commanded ones (``DriveService.hold``). Return what takes back, given the write's
+        future (one result, or a batch's list), the values whose write failed.
         """
-        if done.cancelled():  # a caller gave up on it (asyncio.wrap_future cancels)
-            return
-        results = done.result()
-        for access, result in zip(accesses, results if isinstance(results, list) else [results],
-                                  strict=True):
-            if access.write and result.success:
-                self.drives.written(access.node_id, access.index, access.subindex,
-                                    access.data)
+        undo = {}
+        for position, access in enumerate(accesses):
+            if access.write:
+                put_back = self.drives.hold(access.node_id, access.index, access.subindex,
+                                            access.data)
+                if put_back is not None:
+                    undo[position] = put_back
+
+        def settle(done: Future) -> None:
+            if not undo or done.cancelled():  # a caller gave up on it: it may have gone
+                return
+            results = done.result()
+            results = results if isinstance(results, list) else [results]
+            for position, put_back in undo.items():
+                if not results[position].success:
+                    put_back()
+        return settle
 
     def _batch(self, accesses: Sequence[Access], timeout: float,
                drive_stop: bool, stop=None) -> 'Future[List[SdoResult]]':

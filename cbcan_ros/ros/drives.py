@@ -342,7 +342,7 @@ class DriveTopics:
             return DriveMove.Result(success=False, message=(
                 f'position {goal.position} or velocity {goal.velocity} does not fit the '
                 f"drive's units (node_{joint.node_id} scales); nothing was sent"))
-        if goal.velocity and not round(velocity):
+        if goal.velocity and velocity < 1:
             # 0 would be the drive's own profile velocity: a slow move must not run at that.
             goal_handle.abort()
             return DriveMove.Result(success=False, message=(

@@ -360,19 +360,30 @@ class DriveObjects:
         batch.add_done_callback(keep)
         return done
 
-    def written(self, index: int, subindex: int, data: bytes) -> None:
-        """Take ``data``, confirmed written by SDO, as what the drive holds in ``index``.
+    def hold(self, index: int, subindex: int, data: bytes) -> Optional[Callable[[], None]]:
+        """Take ``data`` as what the drive holds in ``index:subindex``, as it is written.
 
-        For an object its RPDOs map and the gateway does not command (``read_held``), by a
-        caller's write through the gateway (a lower max torque, an offset): the frames carry
-        it from then on, not the copy read when the drive was heard, which would undo it.
+        An object its RPDOs map and the gateway does not command (``read_held``), by a
+        caller's SDO write through the gateway (a lower max torque, an offset), from
+        the moment it is sent: a frame built from the copy read when the drive was heard,
+        even one sent just after the drive confirmed the write, would undo it. Return what
+        puts the copy back, for a write that failed; None when no frame carries the object.
         """
         key = (index, subindex)
         with self._lock:
-            if key not in self._held:
-                return
+            previous = self._held.get(key)
+            if previous is None:
+                return None
             self._held = {**self._held, key: bytes(data)}  # replaced, never changed (_plan)
         self._pdo.carry(self.node_id, [EntryValue(index, subindex, data=bytes(data))])
+
+        def put_back() -> None:
+            with self._lock:
+                if self._held.get(key) != bytes(data):
+                    return  # written again (or the drive read again) since
+                self._held = {**self._held, key: previous}
+            self._pdo.carry(self.node_id, [EntryValue(index, subindex, data=previous)])
+        return put_back
 
     def know_commanded(self, values: Dict[int, int]) -> None:
         """Take the commanded objects among ``values`` (an initial read) as the drive's now."""

@@ -610,14 +610,15 @@ class DriveService:
         if changed or cia402.STATUSWORD in values or cia402.VELOCITY_ACTUAL in values:
             self._wake(drive)  # a halt waits for a velocity (standstill)
 
-    def written(self, node_id: int, index: int, subindex: int, data: bytes) -> None:
-        """Take ``data`` as what drive ``node_id`` now holds in ``index:subindex``.
+    def hold(self, node_id: int, index: int, subindex: int,
+             data: bytes) -> Optional[Callable[[], None]]:
+        """Take ``data`` as what drive ``node_id`` holds in ``index:subindex``, as it is sent.
 
-        A caller's SDO write through the gateway, confirmed (``DriveObjects.written``).
+        ``DriveObjects.hold``: None when no RPDO frame of a drive carries it, else what puts
+        the copy back for a write that failed.
         """
         drive = self._drives.get(node_id)
-        if drive is not None:
-            drive.objects.written(index, subindex, data)
+        return drive.objects.hold(index, subindex, data) if drive is not None else None
 
     def on_emcy(self, node_id: int, error_code: int) -> None:
         """Take the error code of an EMCY a drive sent (0: its errors are gone)."""
