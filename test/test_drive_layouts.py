@@ -402,6 +402,30 @@ def test_a_move_with_velocity_0_uses_the_drives_configured_profile_velocity(rig)
     assert axis.drive.value(PROFILE_VELOCITY, 0) == configured
 
 
+def test_drive_settings_written_through_the_gateway_are_the_ones_a_move_uses(rig):
+    # The profile velocity (0x6081) and the software position limits (0x607D) are read once;
+    # written with the gateway's own sdo_write, the next move follows the new ones, and a
+    # move at velocity 0 does not put back the profile velocity read before.
+    axis = rig()
+    axis.enable(PP)
+    assert move(axis, 1.0).result.success  # reads the limits: none
+    for index, subindex, data in ((PROFILE_VELOCITY, 0, struct.pack('<I', 7000)),
+                                  (SOFTWARE_POSITION_LIMIT, 1, struct.pack('<i', -3000)),
+                                  (SOFTWARE_POSITION_LIMIT, 2, struct.pack('<i', 3000))):
+        written = axis.gateway.call('sdo_write', node_id=NODE, index=index,
+                                    subindex=subindex, data=list(data))
+        assert written.success, written.message
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+    goal = wait_for_future(axis.mover.send_goal_async(DriveMove.Goal(
+        node_id=NODE, position=2.0)), WAIT)
+    assert wait_for_future(goal.get_result_async(), WAIT).result.success
+    assert axis.drive.value(PROFILE_VELOCITY, 0) == struct.pack('<I', 7000)
+    beyond = move(axis, 4.0).result
+    assert not beyond.success
+    assert 'outside its software position limits -3000..3000' in beyond.message
+    assert axis.drive.position == 2000
+
+
 def test_enabling_in_a_torque_mode_holds_the_configured_torque(rig):
     # A gravity-loaded axis: 0.005 N·m at 1000 drive units per N·m holds it (5 units).
     axis = rig(**{f'node_{NODE}.hold_torque': 0.005, f'node_{NODE}.torque_scale': 1000.0,

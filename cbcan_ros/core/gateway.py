@@ -333,7 +333,7 @@ class Gateway:
                   timeout: float = 0.0) -> 'Future[SdoResult]':
         """Write ``data`` to ``index:subindex`` of ``node_id`` (0 = own dictionary)."""
         access = Access(node_id, index, subindex, True, bytes(data))
-        settle = self._held_by_drives([access])
+        settle = self._followed_by_drives([access])
         written = self._single(access, timeout)
         written.add_done_callback(settle)
         return written
@@ -359,35 +359,34 @@ class Gateway:
         ``stop(results so far)``, asked before each access of a device's part is sent, says
         why the rest of that part must not be sent, or None.
         """
-        settle = self._held_by_drives(accesses)
+        settle = self._followed_by_drives(accesses)
         done = self._batch(accesses, timeout, False, stop)
         done.add_done_callback(settle)
         return done
 
-    def _held_by_drives(self, accesses: Sequence[Access]) -> Callable[[Future], None]:
-        """Put the values ``accesses`` write into the drives' RPDO frames, before they go.
+    def _followed_by_drives(self, accesses: Sequence[Access]) -> Callable[[Future], None]:
+        """Have the drive service follow what ``accesses`` write to drives, as they are sent.
 
-        So no frame of a drive undoes a caller's write of an object it maps beside the
-        commanded ones (``DriveService.hold``). Return what takes back, given the write's
-        future (one result, or a batch's list), the values whose write failed.
+        So nothing the gateway keeps of a drive undoes a caller's write
+        (``DriveService.writing``). Return what tells it, given the write's future (one
+        result, or a batch's list), which writes succeeded.
         """
-        undo = {}
+        following = {}
         for position, access in enumerate(accesses):
             if access.write:
-                put_back = self.drives.hold(access.node_id, access.index, access.subindex,
-                                            access.data)
-                if put_back is not None:
-                    undo[position] = put_back
+                settle = self.drives.writing(access.node_id, access.index, access.subindex,
+                                             access.data)
+                if settle is not None:
+                    following[position] = settle
 
-        def settle(done: Future) -> None:
-            if not undo or done.cancelled():  # a caller gave up on it: it may have gone
+        def settle_all(done: Future) -> None:
+            if not following or done.cancelled():  # a caller gave up on it: it may have gone
                 return
             results = done.result()
             results = results if isinstance(results, list) else [results]
-            for position, put_back in undo.items():
-                if not results[position].success:
-                    put_back()
-        return settle
+            for position, settle in following.items():
+                settle(results[position].success)
+        return settle_all
 
     def _batch(self, accesses: Sequence[Access], timeout: float,
                drive_stop: bool, stop=None) -> 'Future[List[SdoResult]]':

@@ -41,7 +41,7 @@ from . import safety as safety
 from .checks import SHUTTING_DOWN
 from .commands import DriveCommands
 from .cycle import FeedbackCycle, poll
-from .objects import DriveObjects, FEEDBACK, feedback_decoder
+from .objects import decode, DriveObjects, FEEDBACK, feedback_decoder
 from .status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed, shown, updated
 
 LOGGER = logging.getLogger(__name__)
@@ -58,6 +58,10 @@ REREAD_INTERVAL = 1.0
 # (quick stop options 5..8) takes as transition 16 and runs again. A longer pause sends
 # nothing: the drive holds its last target, and the command timeout halts it.
 STREAM_KEPT_CYCLES = 3
+# The settings of a drive the gateway reads once and keeps (until a boot): a caller's write
+# of one through the gateway is followed (``writing``).
+KEPT_SETTINGS = frozenset({cia402.PROFILE_VELOCITY_OBJECT, cia402.POSITION_WINDOW,
+                           cia402.SOFTWARE_POSITION_LIMIT})
 
 
 class DriveService:
@@ -610,15 +614,37 @@ class DriveService:
         if changed or cia402.STATUSWORD in values or cia402.VELOCITY_ACTUAL in values:
             self._wake(drive)  # a halt waits for a velocity (standstill)
 
-    def hold(self, node_id: int, index: int, subindex: int,
-             data: bytes) -> Optional[Callable[[], None]]:
-        """Take ``data`` as what drive ``node_id`` holds in ``index:subindex``, as it is sent.
+    def writing(self, node_id: int, index: int, subindex: int,
+                data: bytes) -> Optional[Callable[[bool], None]]:
+        """Follow a caller's SDO write to drive ``node_id`` through the gateway, as it is sent.
 
-        ``DriveObjects.hold``: None when no RPDO frame of a drive carries it, else what puts
-        the copy back for a write that failed.
+        What the gateway keeps of the drive must not undo it: an object its RPDOs map beside
+        the commanded ones goes into their frames now (``DriveObjects.hold``); a setting read
+        once is taken (0x6081, the profile velocity a move at velocity 0 uses) or read again
+        at the next move (0x6067 the position window, 0x607D the software position limits)
+        once the write is confirmed. Return what to call with whether it succeeded; None when
+        the write touches nothing kept.
         """
         drive = self._drives.get(node_id)
-        return drive.objects.hold(index, subindex, data) if drive is not None else None
+        if drive is None:
+            return None
+        put_back = drive.objects.hold(index, subindex, data)
+        if put_back is None and index not in KEPT_SETTINGS:
+            return None
+
+        def settle(success: bool) -> None:
+            if not success:
+                if put_back is not None:
+                    put_back()
+                return
+            with self._lock:
+                if index == cia402.PROFILE_VELOCITY_OBJECT and subindex == 0:
+                    drive.profile_velocity = decode(index, data)
+                elif index == cia402.POSITION_WINDOW:
+                    drive.position_window = None
+                elif index == cia402.SOFTWARE_POSITION_LIMIT:
+                    drive.position_limits = None
+        return settle
 
     def on_emcy(self, node_id: int, error_code: int) -> None:
         """Take the error code of an EMCY a drive sent (0: its errors are gone)."""
