@@ -17,6 +17,7 @@ Example counts are modest: the finite domains are checked whole instead.
 
 import logging
 import math
+import sys
 
 import can
 from hypothesis import event, given, HealthCheck, settings
@@ -146,7 +147,8 @@ def acceptable_request(command: str, mode: int, timeout: float) -> bool:
                         'set_mode', 'home')
             and (mode == 0 or mode in (1, 3, 4, 6, 8, 9, 10))
             and not (command == 'set_mode' and mode == 0)
-            and (timeout == 0 or 0 < timeout <= MAX_TIMEOUT))
+            # below the smallest normal float: a Python int as rclpy sends it (values.py)
+            and (timeout == 0 or sys.float_info.min <= timeout <= MAX_TIMEOUT))
 
 
 @PURE
