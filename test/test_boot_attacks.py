@@ -352,14 +352,15 @@ def test_a_dcf_mapping_without_its_cob_id_is_written_with_the_pdo_disabled(rig, 
         f'{[f"0x{index:04X}:{sub}" for index, sub in written]}')
 
 
-@pytest.mark.parametrize('endless', [float('inf'), float('nan'), -1.0])
+@pytest.mark.parametrize('endless', [float('inf'), float('nan'), -1.0, 1e10])
 def test_a_boot_call_with_an_endless_timeout_is_refused_and_others_keep_their_deadlines(  # noqa: E501
         rig, endless):  # noqa: F811
-    """Promise 5: ``~/boot`` with timeout inf, NaN or below 0 is refused at once.
+    """Promise 5: ``~/boot`` with timeout inf, NaN, below 0 or past an hour is refused at once.
 
     Its deadline went into the gateway's one deadline thread unchecked: inf raised
     OverflowError there (the thread ended), NaN stayed at the top of its heap for good (no
     later deadline fired, the thread spun); either way no later call was timed out again.
+    1e10 s, past what a thread can wait, ended the thread too (a red team).
     """
     text = CONFIGURED.replace('boot_timeout: 1000', 'boot_timeout: 20000') + (
         '  absent:\n    node_id: 11\n    dcf: device.eds\n')

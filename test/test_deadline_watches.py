@@ -58,3 +58,21 @@ def test_watches_fire_once_each_while_others_are_cancelled_and_compacted():
         assert len(deadlines) <= 2 * Deadlines.COMPACT_AT, len(deadlines)
     finally:
         deadlines.stop()
+
+
+def test_a_deadline_past_what_a_thread_can_wait_or_an_expiry_that_fails_stops_no_other():
+    # One deadline thread times out every queued request of the gateway: a watch 1e10 s
+    # away (past threading.TIMEOUT_MAX) ended it with OverflowError, and so would an
+    # expiry that raised; every later request then waited past its timeout.
+    deadlines = Deadlines()
+    fired = threading.Event()
+
+    def fail():
+        raise RuntimeError('an expiry that fails')
+    try:
+        deadlines.watch(time.monotonic() + 1e10, lambda: None)
+        deadlines.watch(time.monotonic() + 0.01, fail)
+        deadlines.watch(time.monotonic() + 0.05, fired.set)
+        assert fired.wait(5.0), 'the deadline after them never fired'
+    finally:
+        deadlines.stop()

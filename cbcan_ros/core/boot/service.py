@@ -31,6 +31,7 @@ LOGGER = logging.getLogger(__name__)
 WAITING, BOOTING, BOOTED, FAILED, IGNORED = 'WAITING', 'BOOTING', 'BOOTED', 'FAILED', 'IGNORED'
 SHUTTING_DOWN = 'the gateway is shutting down'
 DEFAULT_CALL_TIMEOUT = 30.0  # s a boot call waits for its boots when it names no timeout
+MAX_BOOT_WAIT = 3600.0  # s a boot call may wait (a boot with a program download is long)
 
 
 @dataclass(frozen=True)
@@ -248,10 +249,10 @@ class BootService:
         (``boot: false``) and a drive that is running (disable it first). A boot still
         running after ``timeout`` s (0: 30 s) is answered as such; it goes on.
         """
-        if not (math.isfinite(timeout) and timeout >= 0):
+        if not (math.isfinite(timeout) and 0 <= timeout <= MAX_BOOT_WAIT):
             # An endless deadline would stop the gateway's one deadline thread for every call.
-            return resolved(BootAnswer(False, f'timeout {timeout}: allowed 0 (30 s) or a '
-                                              f'positive number of seconds'))
+            return resolved(BootAnswer(False, f'timeout {timeout}: allowed 0 (30 s) up to '
+                                              f'{MAX_BOOT_WAIT:g} s'))
         if node_id and node_id not in self._devices:
             named = ', '.join(map(str, self._devices)) or 'none'
             return resolved(BootAnswer(False, f'node_id {node_id} is not booted by the '

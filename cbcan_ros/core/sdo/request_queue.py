@@ -8,9 +8,16 @@ from concurrent.futures import Future, InvalidStateError
 import contextlib
 import heapq
 import itertools
+import logging
 import threading
 import time
 from typing import Callable, List
+
+LOGGER = logging.getLogger(__name__)
+
+# The longest the deadline thread waits at once: a deadline further away than a thread can
+# wait (threading.TIMEOUT_MAX, some 292 years) would end it with OverflowError.
+LONGEST_WAIT = 3600.0
 
 
 def answer(future: Future, result) -> None:
@@ -93,10 +100,13 @@ class Deadlines:
                     self._changed.release()
                     try:
                         expire()
+                    except Exception:  # noqa: BLE001 - every later deadline must still fire
+                        LOGGER.exception('a request could not be timed out')
                     finally:
                         self._changed.acquire()
                     continue
-                self._changed.wait(self._heap[0][0] - now if self._heap else None)
+                self._changed.wait(min(self._heap[0][0] - now, LONGEST_WAIT) if self._heap
+                                   else None)
 
 
 class JobQueue:
