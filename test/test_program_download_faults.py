@@ -920,7 +920,8 @@ def test_a_boot_up_mid_download_starts_no_boot_into_the_device_being_programmed(
         ros_context, start_durand, tmp_path):
     # A boot-up heard while the device is being programmed (its watchdog reset it, or another
     # master's NMT): the boot of the bus description must not configure and start (NMT) a
-    # device whose program is cleared and not yet started while the download owns it.
+    # device whose program is cleared and not yet started while the download owns it, nor
+    # after that download failed, leaving the program not whole.
     path = bus_file(tmp_path, f"""\
         master:
           node_id: 1
@@ -959,8 +960,15 @@ def test_a_boot_up_mid_download_starts_no_boot_into_the_device_being_programmed(
         starts = [n for n, frame in enumerate(frames) if frame.arbitration_id == 0
                   and bytes(frame.data[:2]) == bytes([1, NODE])]
         assert polls, 'the flash status was not polled after the boot-up'
-        assert not [n for n in starts if n < polls[-1]], \
-            'NMT start of the device while it was being programmed (flash still polled after)'
+        assert not starts, 'NMT start of a device whose download was cancelled in FLASHING'
+        # The program is not whole (flashing not confirmed): its boot says so, and waits for
+        # a download that mends it.
+        wait_until(lambda: state_of(setup.gateway, NODE).state == 'FAILED', WAIT,
+                   'the held boot failed')
+        failed = state_of(setup.gateway, NODE)
+        assert failed.error_status == 'I', failed
+        assert 'program download' in failed.message and 'FLASHING' in failed.message, failed
+        assert 'not started' in failed.message, failed
     finally:
         setup.close()
 

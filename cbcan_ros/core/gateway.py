@@ -209,7 +209,7 @@ class Gateway:
         self.drives.refuse_enable_when(
             lambda node_id: self.boot.refusal(node_id) or self.program.refusal(node_id))
         # A device's boot and a program download of it never run at once.
-        self.boot.hold_while(self.program.refusal)
+        self.boot.hold_while(self.program.refusal, self.program.cleared)
         self.program.refuse_when(lambda request: self.boot.booting(request.node_id)
                                  or self.boot.program_conflict(
                                      request.node_id, request.program,

@@ -82,6 +82,8 @@ class BootLink:
     - ``programming(progress)``: the progress of the program download this boot runs, None
       once it has ended (the device is shown as being programmed meanwhile).
     - ``boot_ups()``: the device's boot-up messages heard so far, awaited or not.
+    - ``program_cleared()``: why the device's program is not whole (a program download
+      failed after stopping it), or ''.
     """
 
     sdo: Callable[[Sequence[Access], float], List[SdoResult]]
@@ -93,6 +95,7 @@ class BootLink:
     stream: Callable[[Access, float, Callable[[int, bool], Optional[str]]], SdoResult]
     programming: Callable[[Optional[Progress]], None] = lambda progress: None
     boot_ups: Callable[[], int] = lambda: 0
+    program_cleared: Callable[[], str] = lambda: ''
 
 
 @dataclass(frozen=True)
@@ -157,6 +160,9 @@ class DeviceBoot:
         self._check_device_type(started)
         self._check_identity()
         self._check_software()
+        cleared = '' if plan.software_version is not None else self._link.program_cleared()
+        if cleared:  # with software_version, 0x1F56 read back says whether it is whole
+            raise BootFailed('I', cleared)
         if plan.restore:
             self._restore()
         if self._configuration_unchanged():

@@ -115,17 +115,24 @@ class BootService:
         self._closing = False
         self._bus_down = ''
         self._listeners: List[Callable[[], None]] = []
-        # Why a device must not be booted now (a program download is writing it), or None.
+        # Why a device must not be booted now (a program download is writing it), or None;
+        # why its program is not whole (a download failed), or ''.
         self._programming: Callable[[int], Optional[str]] = lambda node_id: None
+        self._cleared: Callable[[int], str] = lambda node_id: ''
         self._downloads: Dict[int, Progress] = {}  # the boots' own program downloads
 
-    def hold_while(self, programming: Callable[[int], Optional[str]]) -> None:
+    def hold_while(self, programming: Callable[[int], Optional[str]],
+                   cleared: Callable[[int], str]) -> None:
         """Hold every boot of a device for which ``programming(node_id)`` says why not.
 
         Its boot-ups then come from the download (the bootloader, the new program): one boot
         runs once the download ended (``program_changed``), which configures what it left.
+        A device for which ``cleared(node_id)`` says why its program is not whole (that
+        download failed) is neither configured nor started (error I) until a download mends
+        it.
         """
         self._programming = programming
+        self._cleared = cleared
 
     def program_changed(self) -> None:
         """Boot each device held for its download, now that nothing programs it any more."""
@@ -568,7 +575,7 @@ class BootService:
                     listener()
 
         return BootLink(sdo, nmt_send, ended, await_boot_up, await_heartbeat, read_pdos,
-                        stream, programming, boot_ups)
+                        stream, programming, boot_ups, lambda: self._cleared(node_id))
 
     @prompt
     def _on_heartbeat(self, can_id: int, data: bytearray, _timestamp: float) -> None:

@@ -12,7 +12,7 @@ queues behind a user's SDO calls to the same device and never races them), and i
 watch. The ROS action and the boot process (``software_file``) give their own links.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import errno
 import os
 import stat
@@ -78,6 +78,7 @@ class ProgramResult:
     abort_code: int = 0     # the SDO abort that ended it; 0 none
     flash_status: int = 0   # 0x1F57:n (its low byte) last read; 0 not read or no error
     refused: bool = False   # refused before anything was written
+    cleared: bool = False   # left stopped, cleared or partly written: only a download mends it
 
 
 @dataclass
@@ -442,8 +443,9 @@ class ProgramDownload:
         if failure.refused:
             return self._result(False, failure.message, failure.abort_code, refused=True)
         where = f'{self.phase} ' if self.phase else ''
-        return self._result(False, f'{where}failed: {failure.message}; the device is left '
-                                   f'{self._left}', failure.abort_code)
+        result = self._result(False, f'{where}failed: {failure.message}; the device is left '
+                                     f'{self._left}', failure.abort_code)
+        return replace(result, cleared=self.phase in (CLEARING, DOWNLOADING, FLASHING))
 
     def _result(self, success: bool, message: str, abort_code: int = 0,
                 refused: bool = False) -> ProgramResult:

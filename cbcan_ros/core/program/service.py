@@ -99,6 +99,9 @@ class ProgramService:
         self._refuses_write = refuses_write
         self.settings = settings
         self._runs: Dict[int, _Run] = {}
+        # Why a device's program is not whole (a download failed after it was stopped), until
+        # a download succeeds: its boots must not start it.
+        self._cleared: Dict[int, str] = {}
         self._lock = threading.Lock()
         self._closing = False
         self._listeners: List[Callable[[], None]] = []
@@ -123,6 +126,11 @@ class ProgramService:
         with self._lock:
             running = node_id in self._runs
         return f'node {node_id} is being programmed (~/program_download)' if running else None
+
+    def cleared(self, node_id: int) -> str:
+        """Return why ``node_id``'s program is not whole (its last download failed), or ''."""
+        with self._lock:
+            return self._cleared.get(node_id, '')
 
     def download(self, request: ProgramRequest,
                  feedback: Callable[[Progress], None] = lambda progress: None
@@ -203,6 +211,11 @@ class ProgramService:
                                       run.on_heartbeat)
             with self._lock:
                 self._runs.pop(request.node_id, None)
+                if result.success:
+                    self._cleared.pop(request.node_id, None)
+                elif result.cleared:
+                    self._cleared[request.node_id] = (
+                        f'its program download of {request.file} failed: {result.message}')
         if result.success:
             LOGGER.info('node %d: %s', request.node_id, result.message)
         else:
