@@ -518,8 +518,16 @@ ERRORS = [
     ('pdo-enabled-text', 'nodes: {a: {node_id: 1, tpdo: {1: {enabled: "false"}}}}',
      "nodes.a.tpdo.1.enabled: 'false' is text: allowed true or false"),
     ('pdo-cob-id-text', 'nodes: {a: {node_id: 1, tpdo: {1: {cob_id: automatic}}}}',
-     "nodes.a.tpdo.1.cob_id: 'automatic' is not a number: allowed an integer 0..0xFFFFFFFF "
-     '(or its text, as "0x1A")'),
+     "nodes.a.tpdo.1.cob_id: 'automatic' is not a number: allowed an integer 0..2047 (an "
+     '11-bit CAN-ID) (or its text, as "0x1A")'),
+    ('pdo-cob-id-29-bit', 'nodes: {a: {node_id: 1, tpdo: {1: {cob_id: 0x20000181}}}}',
+     'nodes.a.tpdo.1.cob_id: 536871297 is out of range: allowed an integer 0..2047 (an '
+     '11-bit CAN-ID) (or its text, as "0x1A")'),
+    ('pdo-cob-id-nmt', 'nodes: {a: {node_id: 1, tpdo: {1: {cob_id: 0}}}}',
+     'nodes.a.tpdo.1.cob_id: 0x000 is a CAN-ID CiA 301 restricts (NMT): give another'),
+    ('pdo-cob-id-heartbeat', 'nodes: {a: {node_id: 1, rpdo: {2: {cob_id: "0x70A"}}}}',
+     'nodes.a.rpdo.2.cob_id: 0x70A is a CAN-ID CiA 301 restricts (heartbeats and boot-ups): '
+     'give another'),
     ('pdo-transmission-range', 'nodes: {a: {node_id: 1, tpdo: {1: {transmission: 256}}}}',
      'nodes.a.tpdo.1.transmission: 256 is out of range: allowed an integer 0..255'),
     ('pdo-transmission-twice',

@@ -51,6 +51,12 @@ PATH_LIMIT = 120  # characters of a path shown in a message
 UNSIGNED16 = 0xFFFF
 UNSIGNED32 = 0xFFFFFFFF
 MAX_RESTORE_SUBINDEX = 0x7F  # 0x1011: 1 all, 2 communication, 3 application, 4..0x7F vendor
+MAX_CAN_ID = 0x7FF  # a PDO's cob_id: an 11-bit CAN-ID (the gateway serves no 29-bit PDO)
+# The CAN-IDs CiA 301 restricts: no PDO may use them (a TPDO on 0x000 would be NMT commands).
+RESTRICTED_CAN_IDS = ((0x000, 0x000, 'NMT'), (0x001, 0x07F, 'reserved'),
+                      (0x101, 0x180, 'reserved'), (0x581, 0x5FF, 'SDO answers'),
+                      (0x601, 0x67F, 'SDO requests'), (0x6E0, 0x6FF, 'reserved'),
+                      (0x701, 0x77F, 'heartbeats and boot-ups'), (0x780, 0x7FF, 'reserved'))
 
 # The keys implemented at each level; any other goes to BusDescription.unsupported.
 TOP_LEVEL_KEYS = frozenset({'options', 'master', 'defaults', 'nodes'})
@@ -457,7 +463,14 @@ def _pdo_settings(reader: _Reader, path: str, value) -> Tuple[PdoSetting, ...]:
         if 'enabled' in entry:
             fields['enabled'] = reader.flag(*entry['enabled'])
         if 'cob_id' in entry and entry['cob_id'][1] != 'auto':
-            fields['cob_id'] = reader.integer(*entry['cob_id'], 0, UNSIGNED32, text=True)
+            cob_id = reader.integer(*entry['cob_id'], 0, MAX_CAN_ID, text=True,
+                                    unit=' (an 11-bit CAN-ID)')
+            restricted = next((what for low, high, what in RESTRICTED_CAN_IDS
+                               if low <= cob_id <= high), None)
+            if restricted:
+                raise reader.fail(entry['cob_id'][0], f'0x{cob_id:03X} is a CAN-ID CiA 301 '
+                                  f'restricts ({restricted}): give another')
+            fields['cob_id'] = cob_id
         for key in ('transmission', 'transmission_type'):
             if key in entry:
                 fields['transmission'] = reader.integer(*entry[key], 0, 0xFF)
