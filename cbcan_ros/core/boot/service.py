@@ -303,7 +303,8 @@ class BootService:
             states = [state for state in self.states() if state.node_id in node_ids]
             failed = [f'{s.node_id}: {s.error_status or s.state} {s.message}'.strip()
                       for s in states if s.state != BOOTED]
-            ended = [future.result().message for future in futures
+            ended = [f'{node_id}: {future.result().message}'  # named, as the failures are
+                     for node_id, future in zip(node_ids, futures, strict=True)
                      if future.done() and not future.result().success]
             if ended:
                 failed = ended
