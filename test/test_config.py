@@ -352,3 +352,14 @@ def test_a_canopen_release_other_than_the_supported_one_stops_the_gateway_naming
     assert 'canopen 2.5.0 is installed' in str(refused.value)
     assert 'canopen 2.4.x only' in str(refused.value)
     assert "pip install 'canopen==2.4.1'" in str(refused.value)
+
+
+def test_a_device_file_of_the_bus_description_that_is_not_there_is_named_by_its_key(tmp_path):
+    # The dcf becomes the parameter node_10.eds inside the gateway: a message naming that
+    # parameter sends the user looking for something they never set.
+    bus = tmp_path / 'bus.yml'
+    bus.write_text('nodes:\n  io:\n    node_id: 10\n    dcf: /nonexistent/x.eds\n')
+    outcome = _run_process(case('bus-dcf', f'bus_config:={bus}', says=()), str(tmp_path))
+    assert outcome.status not in (None, 0), outcome.output
+    assert (f"cannot start: nodes.io.dcf of the bus description {bus}: '/nonexistent/x.eds': "
+            f'no such file') in outcome.output, outcome.output

@@ -31,7 +31,8 @@ def load(path: str, node_id: Optional[int] = None,
     """
     shown = quoted(path, PATH_LIMIT)
     if not os.path.isfile(path):
-        raise ValueError(f'{shown}: no such file')
+        raise ValueError(f'{shown}: ' + ('a directory, not a file' if os.path.isdir(path)
+                                         else 'no such file'))
     try:
         imported = import_dictionary(path, node_id or None)
     except EdsError as error:

@@ -136,6 +136,12 @@ class BusFile:
                                      f'{from_file!r}, or leave the parameter out')
         return given
 
+    def source(self, name: str, given, default) -> str:
+        """Return where parameter ``name``'s value comes from, for a message naming it."""
+        if name in self.values and given == default:
+            return f'{self.values[name][1]} of the bus description {self.description.path}'
+        return f'parameter {name}'
+
     def node_ids(self, name: str, given: List[int]) -> List[int]:
         """Return the node list ``name``: the ids ``given`` and those the file adds."""
         return given + [node_id for node_id in self.node_lists.get(name, ())

@@ -343,7 +343,9 @@ class NodeParameters:
                 try:
                     eds.load(path, node_id, note=self._node.get_logger().warning)
                 except ValueError as error:
-                    raise ValueError(f'parameter {name}: {error}') from None
+                    where = self.bus_file.source(name, self._node.get_parameter(name).value,
+                                                 self._defaults.get(name))
+                    raise ValueError(f'{where}: {error}') from None
 
     def simulation_eds(self) -> str:
         """Return the EDS file of the simulated devices."""
