@@ -438,13 +438,16 @@ def test_enabling_in_a_torque_mode_holds_the_configured_torque(rig):
     assert axis.drive.value(0x6071, 0) == struct.pack('<h', 5)  # held, not dropped
 
 
+# The combined layout with RPDO 2 mapping the max torque (0x6072) beside the target velocity.
+MAX_TORQUE_BESIDE_THE_TARGET = tuple(
+    replace(pdo, mapping=((TARGET_VELOCITY, 0), (MAX_TORQUE, 0)))
+    if (pdo.kind, pdo.number) == ('rpdo', 2) else pdo for pdo in layout_pdos('combined'))
+
+
 def test_an_rpdo_mapping_an_object_the_gateway_does_not_command_repeats_the_drives_value(rig):
     # RPDO 2 maps the max torque (0x6072) beside the target velocity: a frame of the
     # gateway's making would set it to 0, and the drive could then give no torque at all.
-    pdos = tuple(replace(pdo, mapping=((TARGET_VELOCITY, 0), (MAX_TORQUE, 0)))
-                 if (pdo.kind, pdo.number) == ('rpdo', 2) else pdo for pdo in layout_pdos(
-                     'combined'))
-    axis = rig(pdos=pdos)
+    axis = rig(pdos=MAX_TORQUE_BESIDE_THE_TARGET)
     axis.enable(CSV)
     bus, frames = axis.gateway.raw_bus(), []
     try:
@@ -466,10 +469,7 @@ def test_a_value_written_by_sdo_through_the_gateway_is_what_its_rpdo_repeats(rig
     # The user lowers the max torque (0x6072) that RPDO 2 maps beside the target velocity,
     # with the gateway's own sdo_write: the frames after it must carry the new limit, not
     # the copy read when the drive was heard, or the next target would undo the limit.
-    pdos = tuple(replace(pdo, mapping=((TARGET_VELOCITY, 0), (MAX_TORQUE, 0)))
-                 if (pdo.kind, pdo.number) == ('rpdo', 2) else pdo for pdo in layout_pdos(
-                     'combined'))
-    axis = rig(pdos=pdos)
+    axis = rig(pdos=MAX_TORQUE_BESIDE_THE_TARGET)
     axis.enable(CSV)
     bus, frames = axis.gateway.raw_bus(), []
     try:
