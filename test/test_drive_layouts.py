@@ -592,3 +592,15 @@ def test_a_holding_target_in_a_synchronous_rpdo_is_applied_before_the_mode_it_ho
     assert any(m.arbitration_id == SYNC for m in frames[hold:mode]), (
         'the mode went before the SYNC that applies the holding target: '
         + ' '.join(f'{m.arbitration_id:03X}#{bytes(m.data).hex()}' for m in frames[:mode + 1]))
+
+
+def test_an_enable_that_waits_for_slow_syncs_gets_the_time_by_default(rig):
+    # At a SYNC every second, the holding target in the synchronous RPDO 2 is applied a
+    # SYNC or two after it went out, and the mode waits for that: more than the 2 s a
+    # command gets by default without SYNC (a red team's enable timed out every time).
+    axis = rig(pdos=MIXED, **{'sync.period': 1.0})
+    gateway = axis.gateway.node.gateway
+    wait_until(lambda: gateway.monitor.status(NODE).state == OPERATIONAL
+               and gateway.pdo.mappings(NODE)[1], WAIT, 'the RPDOs read, the drive OPERATIONAL')
+    answer = axis.command('enable', CSP)  # timeout 0: the default
+    assert answer.success, answer.message

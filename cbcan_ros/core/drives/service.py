@@ -48,6 +48,10 @@ LOGGER = logging.getLogger(__name__)
 
 # A command's time unless its caller says: a transition takes ms, homing as long as it travels.
 DEFAULT_TIMEOUT = 2.0
+# SYNC periods a command's default timeout adds, while the gateway produces SYNC: a step in
+# a synchronous RPDO waits up to three (sent after one, applied at the next, shown after it),
+# and a step after it for two more (commands._send); an enable into a new mode has four.
+SYNC_CYCLES_PER_COMMAND = 12
 HOMING_TIMEOUT = 60.0
 MOVE_TIMEOUT = 60.0
 # A drive's initial read that failed is tried again on a later heartbeat, at most this often.
@@ -287,7 +291,8 @@ class DriveService:
         if refused is not None:
             return resolved(refused)
         drive = self._drives[node_id]
-        limit = timeout or (HOMING_TIMEOUT if command == 'home' else DEFAULT_TIMEOUT)
+        limit = timeout or (HOMING_TIMEOUT if command == 'home' else
+                            DEFAULT_TIMEOUT + SYNC_CYCLES_PER_COMMAND * self.sync.period)
         return self._submit(drive, self._commands.run(drive, command, mode, limit, reads))
 
     def move(self, node_id: int, position: int, relative: bool = False, velocity: int = 0,
