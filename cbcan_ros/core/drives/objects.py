@@ -432,9 +432,7 @@ class DriveObjects:
 
     def applied_at_sync(self, index: int) -> bool:
         """Return whether a write of ``index`` goes now in a synchronous RPDO."""
-        with self._lock:
-            commanded = {index: 0, **self.commanded}
-        chosen = self._plan([index], commanded, cia402.CONTROLWORD in commanded)
+        chosen = self._plan_now([index])
         return any(frame.synchronous and index in frame.indexes for frame in chosen.frames)
 
     def timing(self, indexes: Iterable[int]) -> Tuple[bool, bool]:
@@ -443,12 +441,15 @@ class DriveObjects:
         At once: what goes by SDO or in an event-driven RPDO; at the next SYNC: what goes
         in a synchronous RPDO.
         """
-        with self._lock:
-            commanded = {**dict.fromkeys(indexes, 0), **self.commanded}
-        chosen = self._plan(list(dict.fromkeys(indexes)), commanded,
-                            cia402.CONTROLWORD in commanded)
+        chosen = self._plan_now(list(dict.fromkeys(indexes)))
         return (bool(chosen.by_sdo) or any(not frame.synchronous for frame in chosen.frames),
                 any(frame.synchronous for frame in chosen.frames))
+
+    def _plan_now(self, indexes: List[int]) -> Plan:
+        """Return how a write of ``indexes`` would go out now, its values as commanded."""
+        with self._lock:
+            commanded = {**dict.fromkeys(indexes, 0), **self.commanded}
+        return self._plan(indexes, commanded, cia402.CONTROLWORD in commanded)
 
     def _plan(self, indexes: List[int], commanded: Dict[int, int],
               controlword_known: bool) -> Plan:
