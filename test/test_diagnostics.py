@@ -12,6 +12,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import pytest
 
 from cbcan_ros.core import bus as bus_module
+from cbcan_ros.ros import diagnostics as diagnostics_module
 from cbcan_ros.ros.diagnostics import DIAGNOSTICS_QOS
 from cbcan_ros.simulation.canopen_device import SimulatedDevice
 
@@ -93,6 +94,32 @@ def start_faulty(make_gateway):
     yield factory
     for device in devices:
         device.stop()
+
+
+def test_diagnostics_are_built_only_while_something_subscribes(make_gateway, monkeypatch):
+    # With 127 devices an array is about 2,000 key-values each period: issue 39's idle node
+    # must not pay for messages nobody reads. A subscriber that comes gets them at once.
+    periods, arrays = [], []
+    diagnostics = diagnostics_module.Diagnostics
+    publish, build = diagnostics.publish, diagnostics._bus_status  # the first status built
+
+    def counted_publish(self):
+        periods.append(1)
+        publish(self)
+
+    def counted_build(self, *args):
+        arrays.append(1)
+        return build(self, *args)
+
+    monkeypatch.setattr(diagnostics, 'publish', counted_publish)
+    monkeypatch.setattr(diagnostics, '_bus_status', counted_build)
+    harness = make_gateway(diagnostics_period=0.05)
+    wait_until(lambda: len(periods) >= 5, 10.0, 'five diagnostics periods')
+    assert not arrays, 'an array was built while nothing subscribed to /diagnostics'
+    recorder = DiagnosticsRecorder(harness.client_node)
+    bus = recorder.wait_for('cbcan: CAN bus', OK)
+    assert values(bus)['State'] == 'up'
+    assert arrays
 
 
 def test_devices_are_ok_an_expected_silent_one_is_error(start_faulty):

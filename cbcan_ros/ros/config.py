@@ -134,7 +134,8 @@ class NodeParameters:
                       floating_point_range=_between(0.01, 3600.0))
         self._declare('diagnostics_period', 1.0,
                       'Seconds between publications of the bus and device status on '
-                      '/diagnostics (diagnostic_msgs/DiagnosticArray)',
+                      '/diagnostics (diagnostic_msgs/DiagnosticArray), while anything '
+                      'subscribes to it',
                       floating_point_range=_between(0.01, 3600.0))
         self._declare('pdo.nodes', Parameter.Type.INTEGER_ARRAY,
                       'Node ids (1..127) whose PDOs the gateway serves: their mapping is read '
