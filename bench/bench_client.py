@@ -236,6 +236,7 @@ class Suite:
         gateway = f'{namespace}/cbcan'
         self.trigger = caller.client(Trigger, f'{namespace}/trigger')
         self.sdo_read = caller.client(srv.SdoRead, f'{gateway}/sdo_read')
+        self.floor_sdo_read = caller.client(srv.SdoRead, f'{namespace}/floor_sdo_read')
         self.sdo_batch = caller.client(srv.SdoBatch, f'{gateway}/sdo_batch')
         self.states = []  # (time.time(), state of STATE_DEVICE) of every NodeStates message
         self.udp_drops = {}  # phase: {process: datagrams its socket dropped (full buffer)}
@@ -289,9 +290,9 @@ class Suite:
     def _right(answer, expected: bytes = DEVICE_TYPE) -> bool:
         return answer is not None and answer.success and bytes(answer.data) == expected
 
-    def _call_read(self, node_id: int, failures: list) -> None:
+    def _call_read(self, node_id: int, failures: list, client=None) -> None:
         try:
-            answer = self.caller.call(self.sdo_read, self._read(node_id))
+            answer = self.caller.call(client or self.sdo_read, self._read(node_id))
         except Unanswered as error:
             failures.append(str(error))
             return
@@ -309,16 +310,21 @@ class Suite:
         for _ in range(self.count('warmup')):
             self.raw.read_device_type()
             self.caller.call(self.trigger, Trigger.Request())
+            self._call_read(LATENCY_DEVICE, failures, self.floor_sdo_read)
             self._call_read(LATENCY_DEVICE, failures)
         if failures:
             progress(f'{self.column}: {len(failures)} warm-up reads failed, e.g. {failures[0]}')
 
     def measure_latency(self) -> None:
-        """Rows 1-3: raw upload, Trigger and sdo_read of 0x1000, alternating call by call."""
+        """Rows 1-3: raw upload, Trigger, the read's floor and sdo_read, alternating.
+
+        The floor (``bench_trigger.FloorSdoRead``) is a bare rclpy service whose callback
+        makes the raw upload: what any gateway of rclpy and python-canopen pays at least.
+        """
         count = self.count('latency')
         progress(f'{self.column}: latency, {count} calls a row, alternating')
-        times = {'raw': [], 'trigger': [], 'sdo_read': []}
-        failures = {'raw': [], 'trigger': [], 'sdo_read': []}
+        times = {'raw': [], 'trigger': [], 'floor_sdo_read': [], 'sdo_read': []}
+        failures = {name: [] for name in times}
 
         def raw():
             if self.raw.read_device_type() != DEVICE_TYPE:
@@ -334,9 +340,14 @@ class Suite:
         def sdo_read():
             self._call_read(LATENCY_DEVICE, failures['sdo_read'])
 
-        steps = [('raw', raw), ('trigger', trigger), ('sdo_read', sdo_read)]
+        def floor():
+            self._call_read(LATENCY_DEVICE, failures['floor_sdo_read'], self.floor_sdo_read)
+
+        steps = [('raw', raw), ('trigger', trigger), ('floor_sdo_read', floor),
+                 ('sdo_read', sdo_read)]
         for i in range(count):
-            for name, step in steps[i % 3:] + steps[:i % 3]:  # rotate who goes first
+            turn = i % len(steps)
+            for name, step in steps[turn:] + steps[:turn]:  # rotate who goes first
                 start = time.perf_counter()
                 step()
                 times[name].append(time.perf_counter() - start)
@@ -565,7 +576,7 @@ class Spinner:
 def run_virtual(args) -> None:
     """Run everything in this one process on a python-can virtual bus."""
     from bench_devices import DeviceHost
-    from bench_trigger import TriggerNode
+    from bench_trigger import FloorSdoRead, TriggerNode
     from bench_util import BLOCK_DEVICE as DURAND_ID
     from rclpy.parameter import Parameter
 
@@ -574,7 +585,7 @@ def run_virtual(args) -> None:
     host = DeviceHost('virtual', channel, {}, LOCAL_DEVICES, DURAND_ID)
     host.start()
     rclpy.init()
-    spinners, nodes = [], []
+    spinners, nodes, floor = [], [], None
     try:
         gateway = gateway_node_module.CbcanNode(namespace=namespace, parameter_overrides=[
             Parameter('can.interface', value='virtual'),
@@ -583,8 +594,13 @@ def run_virtual(args) -> None:
         nodes.append(gateway)
         trigger = TriggerNode(namespace, SERVICE_QOS)
         nodes.append(trigger.node)
-        # The gateway on the executor cbcan_node uses, the Trigger on rclpy's default one.
+        floor = FloorSdoRead(namespace, SERVICE_QOS, {'interface': 'virtual',
+                                                      'channel': channel})
+        nodes.append(floor.node)
+        # The gateway and the floor of a read on the executor cbcan_node uses, the Trigger on
+        # rclpy's default one.
         spinners += [Spinner(gateway, gateway_node_module.make_executor()),
+                     Spinner(floor.node, gateway_node_module.make_executor()),
                      Spinner(trigger.node, SingleThreadedExecutor())]
         client_node = rclpy.create_node(f'bench_client_{uuid.uuid4().hex[:8]}')
         nodes.append(client_node)
@@ -597,6 +613,8 @@ def run_virtual(args) -> None:
     finally:
         for spinner in spinners:
             spinner.stop()
+        if floor is not None:
+            floor.close()
         for node in reversed(nodes):
             node.destroy_node()
         rclpy.try_shutdown()

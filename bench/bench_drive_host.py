@@ -27,7 +27,11 @@ up and then answers commands (one JSON object a line) on standard input until ``
   sending, as the gateway's), take every frame, publish one ``sensor_msgs/JointState`` of
   the drives' positions on ``--namespace``/joint_states once a SYNC's two TPDOs of every
   drive are in, and send each ``joint_commands`` message's positions as the drives' RPDO 1
-  frames (controlword 0x0F, target, CSP). No checks, no state, no stops.
+  frames (controlword 0x0F, target, CSP). No checks, no state, no stops;
+* ``enable-floor``: the least any ROS gateway does for an enable: ``--namespace``/
+  drive_command (the gateway's ``DriveCommand`` type and service QoS), whose callback runs
+  python canopen's ``BaseNode402`` (``enable``: OPERATION ENABLED, ``disable``: SWITCH ON
+  DISABLED) on the drive ``--nodes`` of the bus, blocking the executor meanwhile.
 """
 
 import argparse
@@ -491,8 +495,39 @@ def run_floor(args, bus_options: Dict) -> None:
         bus.shutdown()
 
 
+def run_enable_floor(args, bus_options: Dict) -> None:
+    """Serve ``--namespace``/drive_command with BaseNode402 inside the callback (module text)."""
+    from bench_drives import Canopen402, UdpBus
+    import rclpy
+
+    from cbcan_ros.ros.interface import SERVICE_QOS
+    from cbcan_ros.srv import DriveCommand
+
+    drive = Canopen402(UdpBus(args.channel, bus_options['port']), args.nodes[0])
+    rclpy.init()
+    node = rclpy.create_node('enable_floor', namespace=args.namespace)
+    steps = {'enable': drive.enable, 'disable': drive.disable}
+
+    def command(request, response):
+        try:
+            steps[request.command]()
+            response.success = True
+        except (KeyError, RuntimeError) as error:
+            response.message = f'{request.command}: {error!r}'
+        return response
+
+    node.create_service(DriveCommand, 'drive_command', command, qos_profile=SERVICE_QOS)
+    try:
+        _spin_and_serve(node, threading.Event())
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        drive.close()
+
+
 MODES = {'drives': run_drives, 'devices': run_devices, 'bootloader': run_bootloader,
-         'reader': run_reader, 'relay': run_relay, 'floor': run_floor}
+         'reader': run_reader, 'relay': run_relay, 'floor': run_floor,
+         'enable-floor': run_enable_floor}
 
 
 def main(argv=None) -> int:
@@ -518,7 +553,8 @@ def main(argv=None) -> int:
                         default=set(), help='reader mode: COB-IDs whose frames are kept, '
                                             'e.g. 0x181,0x201')
     parser.add_argument('--topic', default='/bench_relay/target', help='relay mode')
-    parser.add_argument('--namespace', default='/bench_floor', help='floor mode')
+    parser.add_argument('--namespace', default='/bench_floor',
+                        help='floor and enable-floor modes')
     parser.add_argument('--period', type=float, default=0.004,
                         help='floor mode: the SYNC period, seconds')
     args = parser.parse_args(argv)

@@ -65,12 +65,12 @@ ENABLE_TARGET = 1.0
 
 
 class UdpBus:
-    """A private udp_multicast bus: a random group and port, as no other run has them."""
+    """A private udp_multicast bus: a random group and port (unless given), as no other run has."""
 
-    def __init__(self):
-        self.group = f'239.{random.randint(1, 254)}.{random.randint(0, 255)}.' \
-                     f'{random.randint(1, 254)}'
-        self.port = random.randint(20000, 40000)
+    def __init__(self, group: Optional[str] = None, port: Optional[int] = None):
+        self.group = group or (f'239.{random.randint(1, 254)}.{random.randint(0, 255)}.'
+                               f'{random.randint(1, 254)}')
+        self.port = port or random.randint(20000, 40000)
 
     def arguments(self) -> List[str]:
         """Return the bench_drive_host.py arguments naming this bus."""
@@ -378,36 +378,37 @@ def steps(frames: List, started: float, answered: float) -> Dict[str, List[float
 
 
 def row_enable(caller: Caller, node: NodeProcess, reference: Canopen402,
-               readers: Dict[str, Child], trigger: str, repetitions: int) -> Dict:
-    """Row 1: enable round trips, the gateway's and BaseNode402's, alternating.
+               readers: Dict[str, Child], trigger: str, floor: str, repetitions: int) -> Dict:
+    """Row 1: enable round trips, the gateway's, BaseNode402's and the floor's, alternating.
 
     ``readers`` (one a bus, recording) show where the time went: the master's reaction to
     each statusword, the drive's, and the way in and out. A bare ``std_srvs/Trigger`` round
-    trip (service ``trigger``, a process of its own) is timed in the same rounds: the gateway
-    cannot take less than BaseNode402 plus that, the floor of any ROS call.
+    trip (service ``trigger``, a process of its own) is timed in the same rounds, and the
+    floor (service ``floor``, ``bench_drive_host.py enable-floor``): BaseNode402 inside a
+    bare rclpy ``DriveCommand`` callback, the least any ROS gateway of python canopen does.
     """
     from std_srvs.srv import Trigger
 
     from cbcan_ros.srv import DriveCommand
-    service = f'{node.name}/drive_command'
 
-    def gateway_enable() -> None:
-        answer = caller.call(DriveCommand, service, node_id=DRIVE, command='enable', mode=CSV)
-        if answer is None or not answer.success:
-            raise RuntimeError(f'gateway enable failed: {answer}')
-
-    def gateway_disable() -> None:
-        answer = caller.call(DriveCommand, service, node_id=DRIVE, command='disable')
-        if answer is None or not answer.success:
-            raise RuntimeError(f'gateway disable failed: {answer}')
+    def command(service: str, who: str, name: str, **fields) -> Callable[[], None]:
+        def call() -> None:
+            answer = caller.call(DriveCommand, service, node_id=DRIVE, command=name, **fields)
+            if answer is None or not answer.success:
+                raise RuntimeError(f'{who} {name} failed: {answer}')
+        return call
 
     def trigger_call() -> None:
         if caller.call(Trigger, trigger) is None:
             raise RuntimeError('the bare Trigger service did not answer')
 
-    contenders = (('gateway', gateway_enable, gateway_disable),
+    gateway = f'{node.name}/drive_command'
+    contenders = (('gateway', command(gateway, 'gateway', 'enable', mode=CSV),
+                   command(gateway, 'gateway', 'disable')),
                   ('basenode402', reference.enable, reference.disable),
-                  ('trigger', trigger_call, lambda: None))
+                  ('trigger', trigger_call, lambda: None),
+                  ('floor', command(floor, 'the floor', 'enable'),
+                   command(floor, 'the floor', 'disable')))
     for _name, _enable, disable in contenders:
         disable()  # both drives start from SWITCH ON DISABLED, in CSV
     times: Dict[str, List[float]] = {name: [] for name, _enable, _disable in contenders}
@@ -436,7 +437,10 @@ def row_enable(caller: Caller, node: NodeProcess, reference: Canopen402,
         row[f'{name}_steps_ms'] = {part: percentile(values, 0.5) * 1e3
                                    for part, values in parts[name].items()}
     row['value'] = row['gateway_ms'] / row['basenode402_ms']
-    row['ratio_to_floor'] = row['gateway_ms'] / (row['basenode402_ms'] + row['trigger_ms'])
+    sum_of_parts = row['basenode402_ms'] + row['trigger_ms']
+    row['ratio_to_floor'] = row['gateway_ms'] / sum_of_parts
+    row['floor_to_parts'] = row['floor_ms'] / sum_of_parts
+    row['gateway_to_floor'] = row['gateway_ms'] / row['floor_ms']
     return row
 
 
@@ -521,20 +525,25 @@ def rows_enable_and_target(args, caller: Caller, rows: Dict[str, Dict],
     ``layout``: the drives' PDO layout; other than ``combined``, only the enable row, kept
     as ``enable_<layout>``.
     """
-    gateway_bus, reference_bus = UdpBus(), UdpBus()
+    gateway_bus, reference_bus, floor_bus = UdpBus(), UdpBus(), UdpBus()
     helpers: List[Child] = []
     node = None
     reference = None
     try:
-        helpers.append(start_helper('drives', 'drives', gateway_bus, '--nodes', str(DRIVE),
-                                    '--layout', layout))
-        helpers.append(start_helper('reference drives', 'drives', reference_bus,
-                                    '--nodes', str(DRIVE), '--layout', layout))
+        for name, bus in (('drives', gateway_bus), ('reference drives', reference_bus),
+                          ('floor drives', floor_bus)):
+            helpers.append(start_helper(name, 'drives', bus, '--nodes', str(DRIVE),
+                                        '--layout', layout))
         readers = {'gateway': start_helper('reader', 'reader', gateway_bus,
                                            '--record', RECORDED),
                    'basenode402': start_helper('reference reader', 'reader', reference_bus,
-                                               '--record', RECORDED)}
+                                               '--record', RECORDED),
+                   'floor': start_helper('floor reader', 'reader', floor_bus,
+                                         '--record', RECORDED)}
         helpers += readers.values()
+        floor_namespace = f'/benchfloor{uuid.uuid4().hex[:8]}'
+        helpers.append(start_helper('enable floor', 'enable-floor', floor_bus,
+                                    '--nodes', str(DRIVE), '--namespace', floor_namespace))
         trigger_namespace = f'/benchtrigger{uuid.uuid4().hex[:8]}'
         trigger = Child('trigger', python('bench_trigger.py', trigger_namespace))
         helpers.append(trigger)
@@ -551,7 +560,7 @@ def rows_enable_and_target(args, caller: Caller, rows: Dict[str, Dict],
             progress(f'drives: enable time, gateway against BaseNode402 ({layout} layout)')
             rows['enable' if layout == 'combined' else f'enable_{layout}'] = row_enable(
                 caller, node, reference, readers, f'{trigger_namespace}/trigger',
-                args.repetitions)
+                f'{floor_namespace}/drive_command', args.repetitions)
         if 'target' in args.rows and layout == 'combined':
             progress('drives: target to RPDO frame')
             gateway_ready(caller, node, [DRIVE])  # enabled in CSV again
@@ -671,6 +680,12 @@ def table(rows: Dict[str, Dict]) -> str:
             f'{_ms(enable["basenode402_ms"])}; bare Trigger round trip '
             f'{_ms(enable["trigger_ms"])} | {enable["ratio_to_floor"]:.2f} (to BaseNode402 + '
             f'Trigger); {enable["value"]:.2f} (to BaseNode402) | <= {ENABLE_TARGET} | {met} |')
+        lines.append(
+            f'| the floor of an enable, {layout} layout: BaseNode402 inside a bare rclpy '
+            f'`DriveCommand` callback | {_ms(enable["floor_ms"])} | BaseNode402 + Trigger as '
+            f'above | {enable["floor_to_parts"]:.2f} (floor to BaseNode402 + Trigger); '
+            f'gateway to floor {enable["gateway_to_floor"]:.2f} | not a target: what any '
+            f'ROS gateway of python canopen pays | - |')
     target = rows.get('target')
     if target:
         met = 'yes' if target['gateway_p50_ms'] <= 1 else '**no**'
@@ -700,7 +715,8 @@ def notes(rows: Dict[str, Dict]) -> List[str]:
     enable = rows.get('enable')
     if enable:
         described = []
-        for name, shown in (('gateway', 'gateway'), ('basenode402', 'BaseNode402')):
+        for name, shown in (('gateway', 'gateway'), ('basenode402', 'BaseNode402'),
+                            ('floor', 'the floor')):
             parts = enable[f'{name}_steps_ms']
             described.append(
                 f'{shown}: call to its first frame {parts["first"]:.2f} ms, statusword to its '

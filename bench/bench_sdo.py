@@ -247,6 +247,10 @@ class Run:
         devices.expect('ready', START_TIMEOUT)
         trigger = Child('trigger', python('bench_trigger.py', namespace))
         trigger.expect('ready', START_TIMEOUT)
+        floor = Child('floor', python(
+            'bench_trigger.py', namespace, '--floor-bus',
+            json.dumps({'interface': 'udp_multicast', 'channel': group, **options})))
+        floor.expect('ready', START_TIMEOUT)
         node_executable = shutil.which('cbcan_node')
         if node_executable is None:
             raise ChildFailed('cbcan_node is not on PATH (run through make bench)')
