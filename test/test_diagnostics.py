@@ -122,6 +122,38 @@ def test_diagnostics_are_built_only_while_something_subscribes(make_gateway, mon
     assert arrays
 
 
+def test_a_late_subscriber_is_not_shown_old_errors_as_the_last_periods(make_gateway,
+                                                                          monkeypatch):
+    periods = []
+    publish = diagnostics_module.Diagnostics.publish
+
+    def counted_publish(self):
+        periods.append(1)
+        publish(self)
+
+    monkeypatch.setattr(diagnostics_module.Diagnostics, 'publish', counted_publish)
+    channel = new_channel()
+    harness = make_gateway(can__interface='faulty', can__channel=channel,
+                           simulation__devices=None, diagnostics_period=0.05)
+    raw = harness.raw_bus()
+    try:
+        raw.send(can.Message(arbitration_id=CAN_ERR_CRTL, is_error_frame=True))
+    finally:
+        raw.shutdown()
+    gateway = harness.node.gateway
+    wait_until(lambda: gateway.bus_status.error_frames == 1, 10.0, 'the error frame taken')
+    seen = len(periods)
+    wait_until(lambda: len(periods) >= seen + 3, 10.0, 'three periods without a subscriber')
+    first = []
+    harness.client_node.create_subscription(
+        DiagnosticArray, '/diagnostics',
+        lambda array: first or first.extend(s for s in array.status if s.name.endswith(
+            ': CAN bus')), DIAGNOSTICS_QOS)
+    wait_until(lambda: first, 10.0, 'the first array at the new subscriber')
+    assert first[0].level == OK, describe(first[0])
+    assert values(first[0])['Error frames'] == '1'
+
+
 def test_devices_are_ok_an_expected_silent_one_is_error(start_faulty):
     harness, _faults, recorder = start_faulty()
     hardware = f'faulty:{harness.channel}'

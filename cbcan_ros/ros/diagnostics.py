@@ -94,10 +94,13 @@ class Diagnostics:
         """Publish the status of the bus and of every device known, if anyone subscribes.
 
         With 127 devices the array is about 2,000 key-values, a few milliseconds of the
-        executor every period: not built for nobody. Rates and "since the last publication"
-        then span the time since the last array published.
+        executor every period: not built for nobody. The counts its rates and warnings are
+        taken against still move on every period, so that a subscriber that comes later is
+        not shown an hour's errors as the last period's.
         """
         if not self._publisher.get_subscription_count():
+            self._previous = (time.monotonic(), self._gateway.bus_status)
+            self._previous_pdo = self._gateway.pdo.statistics()
             return
         bus = self._gateway.bus_status
         array = DiagnosticArray()
