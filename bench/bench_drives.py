@@ -18,7 +18,9 @@ the node's CPU is the gateway's alone; this process, the ROS caller and python c
    first, disabled between; both drives are already in CSV. A receiver process on each bus
    times the frames, to show where the time goes. Measured on the ``combined`` PDO layout
    and again on the ``vendor`` one (the controlword in every RPDO, as EPOS2 EDS files ship).
-   Target: at most 1.0 x (BaseNode402 + a bare ``std_srvs/Trigger`` round trip).
+   Target: at most 1.0 x (BaseNode402 + a bare ``std_srvs/Trigger`` round trip). Beside
+   them, the floor: BaseNode402 inside a bare rclpy ``DriveCommand`` callback on a third bus
+   (``bench_drive_host.py enable-floor``), the least any ROS gateway of python canopen does.
 2. Target latency: a ``std_msgs/Float64`` published on ``~/node_1/target`` until the RPDO
    frame with that target velocity reaches a raw python-can receiver in this process (drive
    enabled in CSV, asynchronous RPDOs, ``drives.command_timeout`` 0). Beside it, alternating
