@@ -8,6 +8,7 @@ import signal
 import time
 import uuid
 
+import can
 from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
@@ -41,6 +42,9 @@ SILENT = 10  # a node id nobody answers
 # The timeout of calls that only shutdown or cleanup may answer: far beyond each test.
 CALL_TIMEOUT = 30.0
 ANSWER = 10.0  # ceiling for answers a quiet machine gives within a fraction of a second
+UNUSED_ID = 0x7F0  # no CANopen service uses it
+BURST = 600  # frames
+INACTIVE_TIME = 1.0  # s: ten diagnostics periods
 
 
 def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node):
@@ -167,6 +171,44 @@ def test_transitions_open_serve_refuse_and_close_the_bus(start_node, client_node
     node.stop()
     assert node.process.returncode == 0, node.output()
     assert node.output().count('is closed') == 2
+
+
+def test_the_first_diagnostics_after_activate_show_the_last_period(start_node, client_node):
+    # Frames taken while the node was inactive are counted, but its first array once active
+    # again gives the rate of its last period, not one spread over the inactive time.
+    group, port = private_bus()
+    name = f'{namespace()}/cbcan'
+    node = start_node(arguments(name, '-p', 'can.interface:=udp_multicast',
+                                '-p', f'can.channel:={group}',
+                                '-p', 'diagnostics_period:=0.1'), port, 'cbcan_lifecycle_node')
+    change_state = service_client(client_node, ChangeState, f'{name}/change_state', node)
+
+    def transition(transition_id: int) -> None:
+        request = ChangeState.Request(transition=Transition(id=transition_id))
+        assert call(change_state, request, f'transition {transition_id}', node).success
+
+    bus_statuses = []
+    client_node.create_subscription(DiagnosticArray, '/diagnostics', lambda array: [
+        bus_statuses.append({pair.key: pair.value for pair in status.values})
+        for status in array.status if status.name == f'{name}: CAN bus'], 10)
+    transition(Transition.TRANSITION_CONFIGURE)
+    transition(Transition.TRANSITION_ACTIVATE)
+    wait_until(lambda: bus_statuses, ANSWER, 'diagnostics once active')
+    transition(Transition.TRANSITION_DEACTIVATE)
+    inactive = len(bus_statuses)
+    raw = can.Bus(interface='udp_multicast', channel=group, port=port)
+    try:
+        for number in range(BURST):
+            raw.send(can.Message(arbitration_id=UNUSED_ID, data=number.to_bytes(2, 'little'),
+                                 is_extended_id=False))
+    finally:
+        raw.shutdown()
+    time.sleep(INACTIVE_TIME)  # the scenario: ten periods pass with the node inactive
+    transition(Transition.TRANSITION_ACTIVATE)
+    wait_until(lambda: len(bus_statuses) > inactive, ANSWER, 'diagnostics once active again')
+    first = bus_statuses[inactive]
+    assert int(first['Frames received']) >= BURST // 2, first  # the burst was taken
+    assert float(first['Frames received/s']) < BURST / 10, first
 
 
 # The managed node, driven as launch systems and people at a shell do.

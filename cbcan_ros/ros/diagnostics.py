@@ -94,13 +94,10 @@ class Diagnostics:
         """Publish the status of the bus and of every device known, if anyone subscribes.
 
         With 127 devices the array is about 2,000 key-values, a few milliseconds of the
-        executor every period: not built for nobody. The counts its rates and warnings are
-        taken against still move on every period, so that a subscriber that comes later is
-        not shown an hour's errors as the last period's.
+        executor every period: not built for nobody (see :meth:`skip`).
         """
         if not self._publisher.get_subscription_count():
-            self._previous = (time.monotonic(), self._gateway.bus_status)
-            self._previous_pdo = self._gateway.pdo.statistics()
+            self.skip()
             return
         bus = self._gateway.bus_status
         array = DiagnosticArray()
@@ -113,6 +110,16 @@ class Diagnostics:
         array.status += [self._drive_status(status)
                          for status in self._gateway.drives.statuses()]
         self._publisher.publish(array)
+
+    def skip(self) -> None:
+        """Let a period pass unpublished (no subscriber, or the node inactive).
+
+        The counts the next array's rates and warnings compare with move on all the same, so
+        that a subscriber that comes later, or a node activated again, is not shown the
+        errors and rates of the time nothing was published as the last period's.
+        """
+        self._previous = (time.monotonic(), self._gateway.bus_status)
+        self._previous_pdo = self._gateway.pdo.statistics()
 
     def destroy(self) -> None:
         """Take the publisher away."""

@@ -502,6 +502,8 @@ class GatewayInterface:
     def _publish_diagnostics(self) -> None:
         if self.active:
             self._diagnostics.publish()
+        else:
+            self._diagnostics.skip()
 
     def _publish_states(self) -> None:
         with self._states_lock:
