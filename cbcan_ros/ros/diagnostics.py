@@ -57,8 +57,8 @@ class Diagnostics:
     """Builds and publishes the gateway's ``DiagnosticArray``; the node calls :meth:`publish`.
 
     - ``<node>: CAN bus``: ERROR while the bus is down (the message says why), WARN when error
-      frames arrived since the last publication, else OK. Frame rates are taken between two
-      publications. It also shows the gateway's own heartbeat (node id, period, state, frames
+      frames arrived in the last period, else OK. Frame rates are taken over the last
+      period. It also shows the gateway's own heartbeat (node id, period, state, frames
       sent), which the bus carries or not, and the raw CAN bridge's frames (received past
       raw.filters, sent, refused, and lost when publishing fell far behind) while it is on.
     - ``<node>: node <id>`` for every device that is expected (parameter ``nodes``), was
