@@ -12,7 +12,7 @@ queues behind a user's SDO calls to the same device and never races them), and i
 watch. The ROS action and the boot process (``software_file``) give their own links.
 """
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 import errno
 import os
 import stat
@@ -443,11 +443,11 @@ class ProgramDownload:
         if failure.refused:
             return self._result(False, failure.message, failure.abort_code, refused=True)
         where = f'{self.phase} ' if self.phase else ''
-        result = self._result(False, f'{where}failed: {failure.message}; the device is left '
-                                     f'{self._left}', failure.abort_code)
-        return replace(result, cleared=self.phase in (CLEARING, DOWNLOADING, FLASHING))
+        return self._result(False, f'{where}failed: {failure.message}; the device is left '
+                                   f'{self._left}', failure.abort_code,
+                            cleared=self.phase in (CLEARING, DOWNLOADING, FLASHING))
 
     def _result(self, success: bool, message: str, abort_code: int = 0,
-                refused: bool = False) -> ProgramResult:
+                refused: bool = False, cleared: bool = False) -> ProgramResult:
         return ProgramResult(success, message, self._software_id, abort_code, self._flash,
-                             refused)
+                             refused, cleared)
