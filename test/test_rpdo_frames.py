@@ -10,6 +10,7 @@ The service runs here on a stand-in network and SYNC producer, so each test deci
 when the SYNC comes and when a frame is on its way out.
 """
 
+import contextlib
 import threading
 
 from cbcan_ros.core.nmt import BOOT_UP, HEARTBEAT_COB_BASE
@@ -217,6 +218,10 @@ class _CycleSync(_Sync):
         for callback in callbacks:
             callback()
 
+    @contextlib.contextmanager
+    def one_cycle(self):
+        yield  # the decision is ``open``, as the test sets it
+
 
 def streaming_service():
     service, network, _ = service_with_a_synchronous_rpdo()
@@ -288,3 +293,54 @@ def test_shutdown_and_a_boot_end_the_streams():
         sync.sync()
         sync.before()
         assert len(network.frames) == 1, 'a frame was sent again after the stream ended'
+
+
+# One command message for several drives: its stream frames built first, then sent together.
+
+def test_the_frames_of_one_message_leave_together_when_it_is_written():
+    # A SYNC the machine lets pass while a message is worked on must find all of its frames
+    # sent or none: drives that took their targets a cycle apart move off the path.
+    service, network, _ = streaming_service()
+    with service.one_cycle():
+        written = service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=1.0)
+        assert network.frames == [], 'a frame of the message left before the message was done'
+        assert not written.done(), 'a frame not sent yet was answered'
+    assert written.result(WAIT).success
+    assert network.frames == [(COB_ID, bytes(2) + (5).to_bytes(4, 'little'))]
+
+
+def test_a_stop_or_boot_while_a_message_is_written_keeps_its_frames_off_the_bus():
+    # The stop went out first; the message's frame, sent after it, would run the drive again.
+    stops = {
+        'a command': lambda service: service.write(NODE, 1, [EntryValue(CONTROLWORD, 0, STOP)]),
+        'a stop carried into the frames': lambda service: service.carry(
+            NODE, [EntryValue(CONTROLWORD, 0, STOP)]),
+        'the end of the streams': lambda service: service.end_streams(NODE),
+        'a boot': boot,
+        'shutdown': lambda service: service.stop(),
+    }
+    for name, stop in stops.items():
+        service, network, sync = streaming_service()
+        running = service.write(NODE, 1, [EntryValue(CONTROLWORD, 0, RUN)])
+        sync.sync()
+        assert running.result(WAIT).success
+        with service.one_cycle():
+            written = service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=1.0)
+            stop(service)
+            sent = list(network.frames)
+        result = written.result(WAIT)
+        assert not result.success and 'not sent' in result.message, (name, result.message)
+        assert network.frames == sent, f'{name}: the target went out after it: {network.frames}'
+
+
+def test_a_frame_the_streams_repeat_sent_while_its_message_was_written_is_not_sent_twice():
+    service, network, sync = streaming_service()
+    service.write(NODE, 1, [EntryValue(TARGET, 0, 4)], stream=10.0).result(WAIT)
+    sync.before()  # the cycle of that target: it has its frame
+    sync.sync()
+    with service.one_cycle():
+        written = service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=10.0)
+        sync.before()  # the cut-off passed while the message was written: the repeat sends it
+    assert written.result(WAIT).success
+    new = (COB_ID, bytes(2) + (5).to_bytes(4, 'little'))
+    assert network.frames[1:] == [new], f'the frames of the cycle: {network.frames[1:]}'

@@ -318,9 +318,9 @@ class DriveService:
     def one_cycle(self):
         """Return a context within which the targets given reach the drives in one SYNC cycle.
 
-        For the targets of one command message (``SyncProducer.one_cycle``).
+        For the targets of one command message (``PdoService.one_cycle``).
         """
-        return self.sync.one_cycle()
+        return self._pdo.one_cycle()
 
     def target(self, node_id: int, value: float) -> DriveResult:
         """Send ``value`` as the target of the drive's present mode, in the drive's units.

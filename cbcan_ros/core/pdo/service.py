@@ -16,15 +16,20 @@ caller sent it; and a cycle the caller leaves without a frame gets the last one 
 quarter period before the SYNC, as a PLC master sends its RPDOs every cycle. A stream lasts
 until a while after its last frame (the caller says how long), a write of another kind to
 the device, a boot, a mapping read or shutdown.
+
+The stream frames of one command message for several devices (``one_cycle``) are all built
+first and then sent back to back: a SYNC the machine let pass while the message was being
+worked on then finds either none of them sent or all of them, never some.
 """
 
 from concurrent.futures import Future
+import contextlib
 from dataclasses import dataclass, field
 import logging
 import re
 import threading
 import time
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 from canopen.objectdictionary import ObjectDictionary
 
@@ -119,6 +124,8 @@ class PdoService:
         self._streams: Dict[Tuple[int, int], float] = {}
         self._repeating = False  # a repeat of the streams waits for the next SYNC
         self._repeated_at = 0.0
+        # Within ``one_cycle``, this thread's stream frames built and not sent yet
+        self._burst = threading.local()
         self._thread = threading.Thread(target=self._read_mappings, name='pdo-mappings',
                                         daemon=True)
 
@@ -287,16 +294,73 @@ class PdoService:
                 return resolved(self._refused(node_id, frame))
             return resolved(self._send(mapping, frame))
 
+    @contextlib.contextmanager
+    def one_cycle(self) -> Iterator[None]:
+        """Have the stream frames written within reach the devices in one SYNC cycle.
+
+        For the targets of one command message: the SYNC producer decides once whether they
+        go at once or wait for the SYNC, and holds its SYNC while they are written
+        (``SyncProducer.one_cycle``); those going at once are built first and sent together
+        when the block ends, so a SYNC that comes anyway finds all of them sent or none.
+        """
+        if getattr(self._burst, 'frames', None) is not None:
+            yield  # within one already: its frames go with its own
+            return
+        with self._sync.one_cycle():
+            self._burst.frames = [] if self._sync.open_for_rpdos() else None
+            try:
+                yield
+            finally:
+                frames, self._burst.frames = self._burst.frames, None
+                if frames:
+                    self._send_burst(frames)
+
     def _send_stream(self, mapping: PdoMapping, values: Sequence[EntryValue], data: bytes,
                      seconds: float) -> 'Future[SdoResult]':
-        """Send a stream's synchronous frame at once (it is in before the next SYNC)."""
+        """Send a stream's synchronous frame at once (it is in before the next SYNC).
+
+        Within ``one_cycle``: when the block ends, with the other frames written in it.
+        """
         with self._frames:
             with self._lock:
                 frame = self._merge(mapping, values, data)
                 if isinstance(frame, SdoResult):
                     return resolved(self._refused(mapping.node_id, frame))
                 self._follow_stream((mapping.node_id, mapping.number), seconds)
-            return resolved(self._send(mapping, frame))
+            burst = getattr(self._burst, 'frames', None)
+            if burst is None:
+                return resolved(self._send(mapping, frame))
+        future: Future = Future()
+        burst.append((mapping, frame, time.monotonic(), future))
+        return future
+
+    def _send_burst(self, burst: List[Tuple[PdoMapping, bytes, float, Future]]) -> None:
+        """Send the stream frames a ``one_cycle`` block built, back to back.
+
+        A frame goes only while its stream is still on and it is still the device's last
+        frame of its RPDO: a stop, a command, a boot, a mapping read or shutdown meanwhile
+        ended the stream (or replaced the frame), and a frame sent after it would undo it.
+        One the stream's repeat already sent is not sent twice. The gateway's SYNC thread
+        waits for them (python-can's and the kernel's periodic tasks cannot be held).
+        """
+        results = []
+        with self._frames, self._sync.between_two_syncs():
+            for mapping, frame, built, future in burst:
+                key = (mapping.node_id, mapping.number)
+                with self._lock:
+                    device = self._devices[mapping.node_id]
+                    current = (key in self._streams and device.rpdos.get(mapping.number)
+                               is mapping and device.last_sent.get(mapping.number) is frame)
+                    sent = device.sent_at.get(mapping.number, 0.0) >= built
+                if not current:
+                    result = SdoResult.failed(
+                        f'{mapping.name}: a command, stop or boot of node {mapping.node_id} '
+                        f'came while this target was being written; it was not sent')
+                else:
+                    result = SdoResult.ok() if sent else self._send(mapping, frame)
+                results.append((future, result))
+        for future, result in results:
+            answer(future, result)
 
     def end_streams(self, node_id: int) -> None:
         """Repeat no frame of ``node_id`` any more (its drive left the state streams are for)."""
