@@ -352,7 +352,10 @@ class PdoService:
                     current = (key in self._streams and device.rpdos.get(mapping.number)
                                is mapping and device.last_sent.get(mapping.number) is frame)
                     sent = device.sent_at.get(mapping.number, 0.0) >= built
-                if not current:
+                    closing = self._closing
+                if closing:
+                    result = SdoResult.failed(f'{SHUTTING_DOWN}; nothing was sent')
+                elif not current:
                     result = SdoResult.failed(
                         f'{mapping.name}: a command, stop or boot of node {mapping.node_id} '
                         f'came while this target was being written; it was not sent')
