@@ -529,6 +529,54 @@ def test_a_drive_in_pre_operational_is_still_halted_when_targets_stop(rig):
     axis.drive_reaches(lambda drive: drive.velocity == 0, 'the drive halted')
 
 
+def test_a_drive_stopped_by_nmt_is_not_shown_halted_and_is_halted_once_started(rig):
+    # Another tool's NMT stop while the drive moves: in STOPPED it takes neither PDO nor SDO,
+    # and this drive (as many) runs on. Once a defect (red team): the command timeout's halt
+    # failed by SDO, drive_state said halted all the same, and it was never tried again, so
+    # the drive ran on after NMT start too.
+    axis = rig('-p', 'drives.command_timeout:=0.3')
+    targets = axis.enable_moving()
+    axis.recorder.send(0x000, bytes([0x02, NODE]))  # NMT stop
+    wait_until(lambda: axis.drive.state == 4, ANSWER, 'the drive STOPPED')
+    published = len(axis.states)
+    targets.stop()
+    wait_until(lambda: 'the command timeout could not halt it' in axis.node.output(),
+               ANSWER + 5.0, 'the log line that the halt failed')
+    wait_until(lambda: not axis.latest().halted, ANSWER, 'drive_state no longer halted')
+    assert any(m.halted for m in axis.states[published:]), 'the halt was never tried'
+    assert axis.drive.velocity == VELOCITY, 'the STOPPED drive took a frame'
+    started = axis.recorder.mark()
+    axis.recorder.send(0x000, bytes([0x01, NODE]))  # NMT start, by the other tool
+    axis.recorder.first(halts, 'the halt sent once the drive is OPERATIONAL', started)
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the drive halted')
+    wait_until(lambda: axis.latest().halted, ANSWER, 'drive_state showing halted')
+
+
+@pytest.mark.parametrize('node_id', [NODE, 0])
+def test_an_nmt_command_that_would_cut_off_an_enabled_drive_is_refused(rig, node_id):
+    axis = rig()
+    targets = axis.enable_moving()
+    before = axis.recorder.mark()
+    for command in (2, 128, 129, 130):  # stop, pre-operational, reset node, reset comm.
+        answer = call(axis.client(NmtCommand, 'nmt_command'), NmtCommand.Request(
+            node_id=node_id, command=command), f'nmt {command}', axis.node)
+        assert not answer.success and answer.abort_code == INACTIVE, (command, answer)
+        assert f'drive {NODE} is OPERATION_ENABLED' in answer.message, answer.message
+    answer = call(axis.client(NmtCommand, 'nmt_command'), NmtCommand.Request(
+        node_id=node_id, command=1), 'nmt start', axis.node)
+    assert answer.success, answer.message
+    axis.recorder.mark()
+    nmt = [m for m in axis.recorder.messages(before) if m.arbitration_id == 0]
+    assert [bytes(m.data) for m in nmt] == [bytes([1, node_id])], shown(nmt)
+    assert axis.drive.velocity == VELOCITY and axis.drive.state == 5
+    targets.stop()
+    disabled = axis.command('disable')
+    assert disabled.success, disabled.message
+    answer = call(axis.client(NmtCommand, 'nmt_command'), NmtCommand.Request(
+        node_id=node_id, command=2), 'nmt stop', axis.node)
+    assert answer.success, f'refused once the drive was disabled: {answer.message}'
+
+
 # 3. The gateway's heartbeat, watched by the drive.
 
 CONSUMER_MS = 1500

@@ -200,7 +200,7 @@ class Gateway:
         self.emcy.add_listener(lambda emergency: self.drives.on_emcy(
             emergency.node_id, emergency.error_code))
         self._deadlines = Deadlines()
-        self.boot = BootService(self.network, boots, self.sdo_batch, self.nmt_command,
+        self.boot = BootService(self.network, boots, self.sdo_batch, self._send_nmt,
                                 self.pdo, self.monitor, self._deadlines, config.sdo_timeout,
                                 self.drives.enabled, self.sdo_stream, config.program)
         self.program = ProgramService(self.network, self.sdo_batch, self.sdo_stream,
@@ -430,13 +430,30 @@ class Gateway:
         return done
 
     def nmt_command(self, node_id: int, command: int) -> NmtResult:
-        """Send NMT ``command`` to ``node_id`` (0 = all nodes); checked before sending."""
+        """Send NMT ``command`` to ``node_id`` (0 = all nodes); checked before sending.
+
+        A caller's command: one that takes an enabled drive out of OPERATIONAL is refused.
+        """
         problem = check_node_id(node_id, '0..127 (0 = all nodes)')
         if problem:
             return NmtResult(False, problem)
         if command not in nmt.COMMAND_NAMES:
             known = ', '.join(f'{code} {name}' for code, name in nmt.COMMAND_NAMES.items())
             return NmtResult(False, f'command {command} is not an NMT command: allowed {known}')
+        enabled = [drive for drive in self.drives.node_ids
+                   if node_id in (0, drive) and self.drives.enabled(drive)]
+        if command != nmt.START and enabled:
+            # Stopped, it takes neither PDO nor SDO; pre-operational, no PDO; reset, it comes
+            # back without its mapping. Many drives run on at their last target meanwhile.
+            return NmtResult(False, f'drive {enabled[0]} is OPERATION_ENABLED: NMT '
+                                    f'{nmt.COMMAND_NAMES[command]} would cut it off from the '
+                                    f"gateway's targets and stops while it may run on; "
+                                    f'disable it first (drive_command disable or quick_stop)',
+                             abort_codes.DEVICE_STATE)
+        return self._send_nmt(node_id, command)
+
+    def _send_nmt(self, node_id: int, command: int) -> NmtResult:
+        """Send a valid NMT ``command`` (the boot's own, and callers' once checked)."""
         refusal = self.config.write_protection.refuses_nmt()
         if refusal:
             return NmtResult(False, refusal, abort_codes.LOCAL_CONTROL)

@@ -14,6 +14,7 @@
 """
 
 import asyncio
+from concurrent.futures import Future
 from dataclasses import replace
 import logging
 import struct
@@ -21,7 +22,7 @@ import time
 from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
 from ..nmt import consumer_entry
-from ..sdo.requests import Access
+from ..sdo.requests import Access, SdoResult
 from . import cia402
 from .arrival import DEFAULT_WINDOW
 from .status import DriveRecord, DriveSettings
@@ -202,10 +203,11 @@ def _where_it_stands(drive: DriveRecord, status, commanded: Optional[int]) -> in
 
 
 def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
-                      closing: Callable[[], bool]) -> bool:
-    """Halt ``drive`` if it has waited too long for a target; return whether it did.
+                      closing: Callable[[], bool]) -> Optional['Future[SdoResult]']:
+    """Halt ``drive`` if it has waited too long for a target; return the halt's write, or None.
 
-    Not once the gateway is ``closing()``: its shutdown stop must be the last word.
+    Not once the gateway is ``closing()``: its shutdown stop must be the last word. A halt
+    that could not be sent is taken back (``halt_not_sent``), so the next tick tries again.
     """
     limit = settings.command_timeout
     with drive.sending:
@@ -216,7 +218,7 @@ def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
             if (not limit or status.state != cia402.OPERATION_ENABLED or status.needs_enable
                     or drive.halted_by or status.mode not in cia402.STREAMING_MODES
                     or time.monotonic() - drive.last_target < limit or closing()):
-                return False
+                return None
             drive.timeouts += 1
             drive.halted_by = 'timeout'
             drive.controlword |= cia402.HALT
@@ -224,11 +226,36 @@ def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
             word, count = drive.controlword, drive.timeouts
             values = {**stopping_target(drive, status, settings, commanded),
                       cia402.CONTROLWORD: word}
-        drive.objects.write(values, HALT_TIMEOUT)
+        written = drive.objects.write(values, HALT_TIMEOUT)
     # One line per drive; later halts are counted (diagnostics), not logged again.
     (LOGGER.warning if count == 1 else LOGGER.debug)(
         'drive %d: no target for %.3f s (drives.command_timeout): halted; the next target '
         'resumes it (halted this way %d times)', drive.node_id, limit, count)
+    return written
+
+
+def halt_not_sent(drive: DriveRecord, lock, count: int, result: SdoResult) -> bool:
+    """Take back the command timeout's halt number ``count`` when ``result`` says it failed.
+
+    The drive did not get it (NMT stopped: neither PDO nor SDO reaches it), so it may run on
+    at its last target: it is shown not halted, and the next tick halts it again. Not when
+    something came since (a target, a command, another halt): that decided afresh. Returns
+    whether the halt was taken back; logged once until a halt is sent again.
+    """
+    with lock:
+        if result.success:
+            drive.halt_failing = False
+            return False
+        if drive.halted_by != 'timeout' or drive.timeouts != count:
+            return False
+        drive.halted_by = ''
+        drive.controlword &= ~cia402.HALT
+        drive.status = replace(drive.status, halted=False)
+        first, drive.halt_failing = not drive.halt_failing, True
+    (LOGGER.error if first else LOGGER.debug)(
+        'drive %d: the command timeout could not halt it (%s): it may run on at its last '
+        'target; tried again until sent (not logged again until then)', drive.node_id,
+        result.message)
     return True
 
 

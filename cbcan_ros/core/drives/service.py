@@ -731,10 +731,19 @@ class DriveService:
             for drive in self._drives.values():
                 if not self._closing:
                     poll(drive, self._lock, self.read_feedback)
-                if safety.halt_if_timed_out(drive, self.settings, self._lock,
-                                            lambda: self._closing):
+                halt = safety.halt_if_timed_out(drive, self.settings, self._lock,
+                                                lambda: self._closing)
+                if halt is not None:
                     with self._lock:
                         self._tell(drive)
+                    count = drive.timeouts
+                    halt.add_done_callback(lambda done, d=drive, n=count: self._halt_sent(
+                        d, n, done.result()))
+
+    def _halt_sent(self, drive: DriveRecord, count: int, result: SdoResult) -> None:
+        if safety.halt_not_sent(drive, self._lock, count, result):
+            with self._lock:
+                self._tell(drive)
 
     # Checks, and the way out.
 

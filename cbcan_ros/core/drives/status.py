@@ -102,6 +102,7 @@ class DriveRecord:
     # What TPDOs brought at that read: (object, mapping read it came by).
     polled_mapped: Set[Tuple[int, int]] = field(default_factory=set)
     timeouts: int = 0
+    halt_failing: bool = False  # the command timeout's last halt could not be sent
     # Why the last set-point of the last stream of PP set-points was not reached, or ''.
     missed_set_point: str = ''
     emcy_code: int = 0  # the error code of the last EMCY
