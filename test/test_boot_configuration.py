@@ -9,6 +9,7 @@ import pathlib
 import struct
 import textwrap
 import threading
+import time
 from typing import List
 
 import can
@@ -336,6 +337,30 @@ def test_a_device_whose_heartbeat_never_comes_fails_with_k(make_gateway, tmp_pat
         assert device.state == 127
     finally:
         device.stop()
+
+
+@pytest.mark.parametrize('producer', [1500, 0])
+def test_a_device_is_watched_at_the_heartbeat_its_bus_description_gives_it(rig, producer,
+                                                                           caplog):
+    # Red team: heartbeat_producer 5000 (or 0: none) against heartbeat.timeout 3 s lost the
+    # device between two heartbeats, and its boot reset it again, every few seconds for ever.
+    text = CONFIGURED.replace('heartbeat_producer: 100', f'heartbeat_producer: {producer}')
+    gateway, devices, frames = rig(text, heartbeat__timeout=0.5)
+    wait_for_boot(gateway, 'BOOTED')
+    ups = len(boot_ups(frames.snapshot()))
+    shown = []
+    watched_until = time.monotonic() + 2.0  # four heartbeat.timeout: a bounded test of absence
+    while time.monotonic() < watched_until:
+        shown.append(gateway.call('nmt_state', node_id=NODE).state_name)
+        time.sleep(0.1)
+    assert 'NOT_DETECTED' not in shown, shown
+    assert state_of(gateway).boots == 1 and len(boot_ups(frames.snapshot())) == ups, \
+        'booted again'
+    if producer:  # lost within 3 of its periods once it is gone
+        devices[NODE].stop()
+        gateway.wait_for_states({NODE: 'NOT_DETECTED'}, timeout=3 * producer / 1000 + WAIT)
+    else:
+        assert 'cannot tell when it is gone' in caplog.text, 'no warning at start'
 
 
 def test_a_failed_mandatory_device_holds_every_device_unstarted(rig):

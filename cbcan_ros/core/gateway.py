@@ -187,6 +187,7 @@ class Gateway:
                                           else HEARTBEAT_PERIODS * config.heartbeat_period)),
             drives, pdo_nodes,
             drives if config.drives.abort_connection is not None else ())
+        self._watch_as_booted(boots, config)
         self.pdo = PdoService(self.network, sorted(pdo_nodes), self.sdo_batch,
                               config.write_protection, self.sync,
                               {node_id: dictionaries[node_id] for node_id in pdo_nodes
@@ -428,6 +429,22 @@ class Gateway:
         for node_id, part in parts.items():
             part.add_done_callback(lambda future, n=node_id: collect(n, future))
         return done
+
+    def _watch_as_booted(self, boots, config: GatewayConfig) -> None:
+        """Lose a booted device after 3 of the heartbeat periods its boot gives it.
+
+        A device given none (0) and not guarded sends nothing to watch: it is never lost.
+        """
+        timeouts = {}
+        for plan in boots.plans:
+            if not plan.boot or plan.node_id in config.guarded_nodes:
+                continue
+            timeouts[plan.node_id] = plan.loss_time(config.heartbeat_timeout)
+            if timeouts[plan.node_id] is None:
+                LOGGER.warning('node %s: its heartbeat_producer is 0 in the bus description and '
+                               'it is not in node_guarding: the gateway cannot tell when it is '
+                               'gone, and shows the last state it reported', plan.label)
+        self.monitor.set_timeouts(timeouts)
 
     def nmt_command(self, node_id: int, command: int) -> NmtResult:
         """Send NMT ``command`` to ``node_id`` (0 = all nodes); checked before sending.

@@ -112,6 +112,7 @@ class HeartbeatMonitor:
         ignored = set(ignored)
         self._heard_ids = [node_id for node_id in range(1, 128) if node_id not in ignored]
         self._timeout = timeout
+        self._timeouts: Dict[int, Optional[float]] = {}  # node: its own (None: not by time)
         self._nodes: Dict[int, _Entry] = {node_id: _Entry() for node_id in expected_nodes}
         self._listeners: List[Callable[[], None]] = []
         self._lost_at = float('-inf')  # when the bus last went down (time.monotonic())
@@ -123,6 +124,14 @@ class HeartbeatMonitor:
         self._running = False
         self._watcher = threading.Thread(target=self._watch, name='heartbeat-timeouts',
                                          daemon=True)
+
+    def set_timeouts(self, timeouts: Dict[int, Optional[float]]) -> None:
+        """Give nodes a silence (s) of their own after which they are lost (before ``start``).
+
+        None: the node is never lost by silence (it sends no heartbeat and is not guarded).
+        """
+        with self._lock:
+            self._timeouts = dict(timeouts)
 
     def add_listener(self, listener: Callable[[], None]) -> None:
         """Call ``listener()`` after every change of the picture."""
@@ -229,10 +238,11 @@ class HeartbeatMonitor:
                 now = time.monotonic()
                 timed_out = False
                 next_deadline = None
-                for entry in self._nodes.values():
-                    if not entry.detected:
+                for node_id, entry in self._nodes.items():
+                    timeout = self._timeouts.get(node_id, self._timeout)
+                    if not entry.detected or timeout is None:
                         continue
-                    deadline = entry.last_monotonic + self._timeout
+                    deadline = entry.last_monotonic + timeout
                     if deadline <= now:
                         entry.detected = False
                         timed_out = True

@@ -105,7 +105,8 @@ class NodeParameters:
                       additional_constraints=checks.NODE_IDS)
         self._declare('heartbeat.timeout', 3.0,
                       'Seconds without heartbeat, boot-up or guarding reply after which a '
-                      'node is NOT_DETECTED',
+                      'node is NOT_DETECTED; a node whose heartbeat_producer the bus_config '
+                      'gives: 3 of its periods when that is longer (0: never)',
                       floating_point_range=_between(0.01, 3600.0))
         self._declare('heartbeat.node_id', 0,
                       "Node id (1..127) of the gateway's own heartbeat (COB-ID 0x700 + id), "

@@ -103,6 +103,25 @@ class DevicePlan:
     checked: Dict[Tuple[int, int], bytes] = field(default_factory=dict)  # read back after
 
     @property
+    def heartbeat_producer(self) -> Optional[int]:
+        """Return the heartbeat producer time (ms) the boot writes to 0x1017, None for none."""
+        written = [write.data for write in self.writes
+                   if (write.index, write.subindex) == (PRODUCER_HEARTBEAT, 0)]
+        return int.from_bytes(written[-1][:2], 'little') if written else None
+
+    def loss_time(self, default: float) -> Optional[float]:
+        """Return how long (s) the device may be silent before it is lost, None: not watched.
+
+        ``HEARTBEAT_PERIODS`` of the producer time the boot gives it, never less than
+        ``default`` (``heartbeat.timeout``, also for a device given none); a producer time 0
+        means no heartbeat to watch.
+        """
+        producer = self.heartbeat_producer
+        if producer is None:
+            return default
+        return max(default, HEARTBEAT_PERIODS * producer / 1000) if producer else None
+
+    @property
     def label(self) -> str:
         """Return how messages name the device: its id and, when it differs, its name."""
         plain = f'node_{self.node_id}'
