@@ -76,6 +76,26 @@ def test_the_bus_file_fills_every_parameter_not_given(tmp_path):
     assert 'nodes.elbow.polling' in given.warnings[-1], given.warnings
 
 
+def test_the_node_shows_the_values_the_bus_file_gives_as_its_parameters(tmp_path):
+    # Red team: they were the gateway's only inside, so get_parameters showed node_4.eds
+    # empty and cbcan_cli, which finds a node's EDS there, could not name its objects.
+    node, _ = parameters(f'bus_config:={bus(tmp_path)}')
+    try:
+        shown = {name: node.get_parameter(name).value for name in (
+            'heartbeat.node_id', 'heartbeat.period', 'sync.period', 'node_4.eds',
+            'node_6.eds', 'node_4.joint', 'node_4.position_scale', 'node_4.position_offset')}
+        lists = {name: list(node.get_parameter(name).value)
+                 for name in ('nodes', 'drives.nodes', 'pdo.nodes')}
+    finally:
+        node.destroy_node()
+    assert shown == {'heartbeat.node_id': 1, 'heartbeat.period': 0.05,
+                     'sync.period': pytest.approx(0.004), 'node_4.eds': str(DRIVE_EDS),
+                     'node_6.eds': str(EDS), 'node_4.joint': 'elbow',
+                     'node_4.position_scale': 2000.0,
+                     'node_4.position_offset': pytest.approx(-0.5)}
+    assert lists == {'nodes': [4, 6], 'drives.nodes': [4], 'pdo.nodes': [6]}
+
+
 def test_a_parameter_that_says_the_same_is_taken(tmp_path):
     node, given = parameters(f'bus_config:={bus(tmp_path)}', 'heartbeat.node_id:=1',
                              'node_4.position_scale:=2000.0')

@@ -138,7 +138,7 @@ class BusFile:
 
     def source(self, name: str, given, default) -> str:
         """Return where parameter ``name``'s value comes from, for a message naming it."""
-        if name in self.values and given == default:
+        if name in self.values and given in (default, self.values[name][0]):
             return f'{self.values[name][1]} of the bus description {self.description.path}'
         return f'parameter {name}'
 

@@ -43,6 +43,27 @@ class NodeParameters:
         boot_parameters.describe(self._declare)
         self.bus_file = boot_parameters.BusFile(self.value('bus_config'))
         self._declare_all()
+        self._show_bus_file_values()
+
+    def _show_bus_file_values(self) -> None:
+        """Set the parameters the bus description fills to what it gives them.
+
+        So ``get_parameters`` tells what the gateway runs with (``cbcan_cli`` finds a
+        node's EDS there). Before any callback watches the parameters: nothing reacts.
+        """
+        shown = []
+        for name in [*self.bus_file.values, *self.bus_file.node_lists]:
+            if not self._node.has_parameter(name):
+                continue
+            current = self._node.get_parameter_or(name)  # a list given none is not set
+            value = (self.node_ids(name) if name in self.bus_file.node_lists
+                     else self.value(name))
+            if current.type_ == Parameter.Type.DOUBLE:
+                value = float(value)
+            if value != current.value and value != []:
+                shown.append(Parameter(name, value=value))
+        if shown:
+            self._node.set_parameters(shown)
 
     def _declare(self, name: str, value, description: str, **ranges) -> Parameter:
         """Declare a parameter; raise ConfigurationError if the value given for it is wrong."""
