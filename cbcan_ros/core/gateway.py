@@ -449,7 +449,7 @@ class Gateway:
     def nmt_command(self, node_id: int, command: int) -> NmtResult:
         """Send NMT ``command`` to ``node_id`` (0 = all nodes); checked before sending.
 
-        A caller's command: one that takes an enabled drive out of OPERATIONAL is refused.
+        A caller's command: STOP to an enabled drive is refused.
         """
         problem = check_node_id(node_id, '0..127 (0 = all nodes)')
         if problem:
@@ -459,13 +459,14 @@ class Gateway:
             return NmtResult(False, f'command {command} is not an NMT command: allowed {known}')
         enabled = [drive for drive in self.drives.node_ids
                    if node_id in (0, drive) and self.drives.enabled(drive)]
-        if command != nmt.START and enabled:
-            # Stopped, it takes neither PDO nor SDO; pre-operational, no PDO; reset, it comes
-            # back without its mapping. Many drives run on at their last target meanwhile.
-            return NmtResult(False, f'drive {enabled[0]} is OPERATION_ENABLED: NMT '
-                                    f'{nmt.COMMAND_NAMES[command]} would cut it off from the '
-                                    f"gateway's targets and stops while it may run on; "
-                                    f'disable it first (drive_command disable or quick_stop)',
+        if command == nmt.STOP and enabled:
+            # STOPPED, it takes neither PDO nor SDO: no target, halt or stop reaches it, and
+            # many drives run on at their last target. (Pre-operational and the resets leave
+            # SDO, which the drive service then uses: ``HeartbeatMonitor.commanded``.)
+            return NmtResult(False, f'drive {enabled[0]} is OPERATION_ENABLED: NMT STOP would '
+                                    f"cut it off from the gateway's targets and stops (no PDO, "
+                                    f'no SDO) while it may run on; disable it first '
+                                    f'(drive_command disable or quick_stop)',
                              abort_codes.DEVICE_STATE)
         return self._send_nmt(node_id, command)
 
