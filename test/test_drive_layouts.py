@@ -11,6 +11,7 @@ rising bit 4, which the drive takes with the target it holds then.
 
 from dataclasses import replace
 import struct
+import threading
 
 from action_msgs.msg import GoalStatus
 from diagnostic_msgs.msg import DiagnosticArray
@@ -21,7 +22,11 @@ from test_drives import CSP, CST, CSV, HOMING, NODE, PP, PV, SCALE, WAIT, watch
 
 from cbcan_ros.action import DriveMove
 from cbcan_ros.core.drives import cia402
+from cbcan_ros.core.drives.objects import REPLACED
+from cbcan_ros.core.drives.service import DriveService
 from cbcan_ros.core.nmt import OPERATIONAL
+from cbcan_ros.core.sdo.request_queue import resolved
+from cbcan_ros.core.sdo.requests import SdoResult
 from cbcan_ros.simulation.durand.drive_objects import (
     HOME_OFFSET,
     MAX_TORQUE,
@@ -531,8 +536,9 @@ def test_a_stream_of_targets_that_are_not_sent_is_logged_once(rig, caplog):
     axis.drive._network.allowed = lambda cob_id: cob_id != 0x580 + NODE  # no SDO answers
     for value in range(1, 11):
         axis.target.publish(Float64(data=value / 10))
-    wait_until(lambda: gateway.sdo_statistics()[NODE].timeouts >= timeouts + 5, WAIT,
-               'five targets timed out')
+        # Apart, so none is replaced in the queue by the next (test below): each times out.
+        wait_until(lambda value=value: gateway.sdo_statistics()[NODE].timeouts
+                   >= timeouts + value, WAIT, f'target {value} timed out')
 
     def lines() -> list:
         return [r.message for r in caplog.records if 'a target was not sent' in r.message]
@@ -540,6 +546,46 @@ def test_a_stream_of_targets_that_are_not_sent_is_logged_once(rig, caplog):
     # just before its caller hears it, so the line may follow the count by a moment.
     wait_until(lines, WAIT, 'the line saying a target was not sent')
     assert len(lines()) == 1, lines()
+
+
+def test_targets_waiting_to_go_by_sdo_are_replaced_by_the_newest(rig):
+    # Red team: a stream at 250 Hz to a drive run by SDO queued a transfer a target; the
+    # queue outgrew the timeout, and every later request to the drive (its PDO mapping
+    # read) timed out behind it. A target still queued when a newer one comes is dropped.
+    axis = rig(pdos=layout_pdos('sdo_only'))
+    axis.enable(CSV)
+    gateway = axis.gateway.node.gateway
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        for value in range(1, 11):  # faster than SDO transfers go: they queue
+            assert gateway.drives.target(NODE, value * 100).success
+        wait_until(lambda: axis.drive.value(cia402.TARGET_VELOCITY) == struct.pack(
+            '<i', 1000), WAIT, 'the last target taken')
+        watch(bus, frames, lambda seen: 1000 in target_writes(seen), 'the last target sent')
+    finally:
+        bus.shutdown()
+    sent = target_writes(frames)
+    assert sent[-1] == 1000 and len(sent) < 10, f'every queued target went out: {sent}'
+
+
+def test_targets_sent_and_lost_by_turns_are_one_incident_logged_once(caplog):
+    service = DriveService.__new__(DriveService)  # the log's book-keeping alone
+    service._lock, service._targets_failing = threading.RLock(), {}
+    lost, sent = resolved(SdoResult.aborted(0x05040000, 'TIMEOUT')), resolved(SdoResult.ok())
+    replaced = resolved(SdoResult.failed(f'node {NODE}: {REPLACED}; not sent'))
+    for outcome in [lost, sent, lost, sent, replaced, lost] * 5:
+        service._log_failed_target(NODE, outcome)
+    lines = [r.message for r in caplog.records if 'a target was not sent' in r.message]
+    assert len(lines) == 1 and 'TIMEOUT' in lines[0], lines
+    for outcome in [replaced, sent]:  # a replaced target is not a lost one
+        service._log_failed_target(NODE + 1, outcome)
+    assert len([r for r in caplog.records if 'not sent' in r.message]) == 1
+
+
+def target_writes(frames: list) -> list:
+    """Return the target velocities written by SDO (0x60FF) in ``frames``, in order."""
+    return [struct.unpack_from('<i', bytes(m.data), 4)[0] for m in frames
+            if m.arbitration_id == 0x600 + NODE and bytes(m.data[1:4]) == b'\xff\x60\x00']
 
 
 # ros2_canopen's RPDOs with the targets' RPDO synchronous, the controlword's not (as a bus.yml

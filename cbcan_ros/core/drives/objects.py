@@ -39,6 +39,9 @@ COMMANDED = frozenset({cia402.CONTROLWORD, cia402.MODE, cia402.TARGET_POSITION,
                        cia402.PROFILE_VELOCITY_OBJECT})
 # What is read of a drive when it is first heard and after each boot: its feedback, its
 # error and modes, and the commanded values a PDO frame repeats.
+# Why a target queued to go by SDO was dropped: a newer one of the same object came first.
+REPLACED = 'a newer target replaced it before it was sent'
+
 INITIAL_READS = (*FEEDBACK, cia402.ERROR_CODE, cia402.SUPPORTED_MODES, *sorted(COMMANDED))
 
 
@@ -134,6 +137,7 @@ class DriveObjects:
         self._held_reads = -1
         self._writes = 0  # writes begun, numbered
         self._controlword_write = 0  # the number of the latest write with a controlword
+        self._target_writes: Dict[int, int] = {}  # object: the latest replaceable write of it
         # Plans made on the RPDO mappings and held bytes ``_plans_for`` (the PDO service and
         # this class replace those, never change them): a stream of targets plans once.
         self._plans: Dict[tuple, Plan] = {}
@@ -202,8 +206,8 @@ class DriveObjects:
         """Return how many times the PDO service read the drive's mapping (0: none)."""
         return self._pdo.mapping_reads(self.node_id) if self.node_id in self._pdo.node_ids else 0
 
-    def write(self, values: Dict[int, int], timeout: float,
-              stream: float = 0.0) -> 'Future[SdoResult]':
+    def write(self, values: Dict[int, int], timeout: float, stream: float = 0.0,
+              replaceable: bool = False) -> 'Future[SdoResult]':
         """Send ``values`` (object: value) to the drive; resolves when all went out or why not.
 
         Frames are chosen and ordered by ``frames.plan``: what no usable RPDO carries
@@ -212,7 +216,8 @@ class DriveObjects:
         frames built from ``commanded`` go out in the order it changed. A part that waits
         (for an SDO confirmation or a SYNC) is not sent when a later write changed the
         controlword meanwhile: the drive has that one, and this write is answered failed.
-        ``stream``: the write is a target of a stream (``PdoService.write``).
+        ``stream``: the write is a target of a stream (``PdoService.write``). ``replaceable``:
+        a target that a newer one of the same objects replaces while it waits to go by SDO.
         """
         data = {index: encode(index, value) for index, value in values.items()}
         with self._lock:
@@ -223,6 +228,8 @@ class DriveObjects:
             if cia402.CONTROLWORD in values:
                 self._controlword_write = self._writes
             write = self._writes
+            if replaceable:
+                self._target_writes.update(dict.fromkeys(values, write))
         chosen = self._plan(list(values), commanded, previous is not None)
         frames = list(chosen.frames)
         last = (frames.pop() if cia402.CONTROLWORD in values and frames else None)
@@ -230,7 +237,7 @@ class DriveObjects:
         if chosen.by_sdo:
             steps.append(lambda: self._write_by_sdo(
                 [(index, data[index]) for index in chosen.by_sdo], timeout,
-                None if cia402.CONTROLWORD in values else write))
+                None if cia402.CONTROLWORD in values else write, replaceable))
         if frames:
             steps.append(lambda: self._send_frames(frames, previous, write, last is None,
                                                    stream))
@@ -404,13 +411,15 @@ class DriveObjects:
         batch.add_done_callback(collect)
         return done
 
-    def _write_by_sdo(self, data, timeout: float,
-                      write: Optional[int] = None) -> 'Future[SdoResult]':
+    def _write_by_sdo(self, data, timeout: float, write: Optional[int] = None,
+                      replaceable: bool = False) -> 'Future[SdoResult]':
         """Write ``data`` by SDO (object, bytes); resolves to the first failure, else success.
 
         Of write number ``write`` (None: always), only while no later write changed the
         controlword: a target waiting in the device's SDO queue as a halt or a stop goes out
-        must not follow it.
+        must not follow it. A ``replaceable`` target, only while no newer target of the same
+        object came (``REPLACED``): targets at a control rate by SDO would fill the device's
+        queue, and what waits behind them (its PDO mapping read) would time out.
         """
         if self.node_id in self._pdo.node_ids:  # no RPDO frame may undo it
             self._pdo.carry(self.node_id, [EntryValue(index, 0, data=value)
@@ -419,8 +428,12 @@ class DriveObjects:
         def superseded(_results) -> Optional[str]:
             with self._lock:
                 later = self._controlword_write > write
-            return (f'node {self.node_id}: a later command changed the controlword before '
-                    f'this write was sent') if later else None
+                replaced = replaceable and any(self._target_writes.get(index, 0) > write
+                                               for index, _ in data)
+            if later:
+                return (f'node {self.node_id}: a later command changed the controlword before '
+                        f'this write was sent')
+            return f'node {self.node_id}: {REPLACED}' if replaced else None
         batch = self._sdo_batch([Access(self.node_id, index, 0, True, value)
                                  for index, value in data], timeout,
                                 None if write is None else superseded)

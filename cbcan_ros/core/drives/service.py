@@ -41,7 +41,7 @@ from . import safety as safety
 from .checks import SHUTTING_DOWN
 from .commands import DriveCommands
 from .cycle import FeedbackCycle, poll
-from .objects import decode, DriveObjects, FEEDBACK, feedback_decoder
+from .objects import decode, DriveObjects, FEEDBACK, feedback_decoder, REPLACED
 from .status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed, shown, updated
 
 LOGGER = logging.getLogger(__name__)
@@ -56,6 +56,8 @@ HOMING_TIMEOUT = 60.0
 MOVE_TIMEOUT = 60.0
 # A drive's initial read that failed is tried again on a later heartbeat, at most this often.
 REREAD_INTERVAL = 1.0
+# Targets going out this long (s) in a row end an incident of targets not sent (one log line).
+TARGETS_SENT_AGAIN = 1.0
 # A stream of targets is kept up for at most this many SYNC cycles after its last target:
 # a controller late by a cycle or two still has an RPDO each cycle, but every frame kept up
 # carries the controlword that enabled the drive, which a drive that stopped by itself
@@ -115,7 +117,8 @@ class DriveService:
         self._stops_shown = False
         # Drives whose last target was not sent: the first failure of a run is logged, the
         # rest of it not (a stream at 250 Hz would log every one), until one is sent again.
-        self._targets_failing: set = set()
+        # Drives whose targets are not sent (an incident): since when they go out again
+        self._targets_failing: Dict[int, Optional[float]] = {}
         self._checks = checks.RequestChecks(self._drives, self._lock, write_protection,
                                             bus_down, lambda: self._closing)
         self._cycle = FeedbackCycle(settings.feedback_period, self._tick, sync.next_point,
@@ -364,7 +367,7 @@ class DriveService:
             stream = (0.0 if cia402.CONTROLWORD in values
                       else STREAM_KEPT_CYCLES * self.sync.period)
             sent = drive.objects.write(values, self.settings.feedback_period * 10 or 0.5,
-                                       stream)
+                                       stream, replaceable=cia402.CONTROLWORD not in values)
         sent.add_done_callback(lambda done: self._log_failed_target(node_id, done))
         return DriveResult(True, 'sent', status)
 
@@ -784,12 +787,27 @@ class DriveService:
         return done
 
     def _log_failed_target(self, node_id: int, done: Future) -> None:
-        failed = not done.result().success
+        """Log the first target of an incident that was not sent, not the ones after it.
+
+        An incident ends once targets went out for ``TARGETS_SENT_AGAIN`` s in a row: targets
+        that go out and time out by turns (an overloaded SDO channel) are one incident. One
+        a newer target replaced in the queue was not lost.
+        """
+        result = done.result()
+        failed = not result.success and REPLACED not in result.message
+        now = time.monotonic()
         with self._lock:
             first = failed and node_id not in self._targets_failing
-            (self._targets_failing.add if failed else self._targets_failing.discard)(node_id)
+            if failed:
+                self._targets_failing[node_id] = None
+            elif node_id in self._targets_failing:
+                since = self._targets_failing[node_id]
+                if since is None:
+                    self._targets_failing[node_id] = now
+                elif now - since >= TARGETS_SENT_AGAIN:
+                    del self._targets_failing[node_id]
         if first:
             LOGGER.warning('drive %d: a target was not sent: %s; the targets after it that are '
-                           'not sent either are not logged, until one is', node_id,
-                           done.result().message)
+                           'not sent either are not logged, until targets have gone out for '
+                           '%g s', node_id, result.message, TARGETS_SENT_AGAIN)
 
