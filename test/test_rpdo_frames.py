@@ -13,6 +13,8 @@ when the SYNC comes and when a frame is on its way out.
 import contextlib
 import threading
 
+import pytest
+
 from cbcan_ros.core.nmt import BOOT_UP, HEARTBEAT_COB_BASE
 from cbcan_ros.core.pdo.mapping import EntryValue, parse_mapping
 from cbcan_ros.core.pdo.service import PdoService
@@ -335,14 +337,24 @@ def test_a_stop_or_boot_while_a_message_is_written_keeps_its_frames_off_the_bus(
         assert network.frames == sent, f'{name}: the target went out after it: {network.frames}'
 
 
-def test_a_frame_the_streams_repeat_sent_while_its_message_was_written_is_not_sent_twice():
+@pytest.mark.parametrize('waiting', ['for its message to end', 'for the SYNC'])
+def test_a_cycle_without_a_frame_gets_the_one_sent_last_not_one_waiting(waiting):
+    # The repeat a quarter period before the SYNC stands for the cycle the caller left
+    # without a frame. Once a defect: it sent the drive's newest frame, one of the next
+    # cycle still waiting, so that drive took a message's target a cycle before the others.
     service, network, sync = streaming_service()
     service.write(NODE, 1, [EntryValue(TARGET, 0, 4)], stream=10.0).result(WAIT)
     sync.before()  # the cycle of that target: it has its frame
     sync.sync()
-    with service.one_cycle():
+    if waiting == 'for the SYNC':
+        sync.open = False  # past the cut-off: the next target waits for the SYNC
         written = service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=10.0)
-        sync.before()  # the cut-off passed while the message was written: the repeat sends it
+        sync.before()  # this cycle got no frame: the repeat
+        sync.sync()
+    else:
+        with service.one_cycle():
+            written = service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=10.0)
+            sync.before()  # the cut-off passed while the message was written: the repeat
     assert written.result(WAIT).success
-    new = (COB_ID, bytes(2) + (5).to_bytes(4, 'little'))
-    assert network.frames[1:] == [new], f'the frames of the cycle: {network.frames[1:]}'
+    old, new = ((COB_ID, bytes(2) + (value).to_bytes(4, 'little')) for value in (4, 5))
+    assert network.frames == [old, old, new], network.frames

@@ -12,14 +12,14 @@ synchronous ones right after a SYNC the gateway produces (``sync.py``).
 
 A stream of synchronous frames (a drive's targets, one a control cycle) goes out at once
 instead, when it is in before the next SYNC, so a target reaches the drive in the cycle its
-caller sent it; and a cycle the caller leaves without a frame gets the last one again, a
-quarter period before the SYNC, as a PLC master sends its RPDOs every cycle. A stream lasts
+caller sent it; and a cycle the caller leaves without a frame gets the last one sent again,
+a quarter period before the SYNC, as a PLC master sends its RPDOs every cycle. A stream lasts
 until a while after its last frame (the caller says how long), a write of another kind to
 the device, a boot, a mapping read or shutdown.
 
 The stream frames of one command message for several devices (``one_cycle``) are all built
 first and then sent back to back: a SYNC the machine let pass while the message was being
-worked on then finds either none of them sent or all of them, never some.
+worked on then finds either none of them sent or all of them.
 """
 
 from concurrent.futures import Future
@@ -71,7 +71,9 @@ class _Device:
     dictionary: Optional[ObjectDictionary]
     tpdos: Dict[int, PdoMapping] = field(default_factory=dict)
     rpdos: Dict[int, PdoMapping] = field(default_factory=dict)
-    last_sent: Dict[int, bytes] = field(default_factory=dict)
+    last_sent: Dict[int, bytes] = field(default_factory=dict)  # RPDO: its newest frame
+    # RPDO: the frame last sent (the newest may wait for the SYNC, or for its message's end)
+    on_bus: Dict[int, bytes] = field(default_factory=dict)
     last_received: Dict[int, float] = field(default_factory=dict)
     sent_at: Dict[int, float] = field(default_factory=dict)  # RPDO: when its frame last went
     heard: bool = False
@@ -331,27 +333,27 @@ class PdoService:
             if burst is None:
                 return resolved(self._send(mapping, frame))
         future: Future = Future()
-        burst.append((mapping, frame, time.monotonic(), future))
+        burst.append((mapping, frame, future))
         return future
 
-    def _send_burst(self, burst: List[Tuple[PdoMapping, bytes, float, Future]]) -> None:
+    def _send_burst(self, burst: List[Tuple[PdoMapping, bytes, Future]]) -> None:
         """Send the stream frames a ``one_cycle`` block built, back to back.
 
         A frame goes only while its stream is still on and it is still the device's last
         frame of its RPDO: a stop, a command, a boot, a mapping read or shutdown meanwhile
         ended the stream (or replaced the frame), and a frame sent after it would undo it.
-        One the stream's repeat already sent is not sent twice. The gateway's SYNC thread
+        One already sent (a SYNC's flush of its RPDO) is not sent twice. The gateway's SYNC thread
         waits for them (python-can's and the kernel's periodic tasks cannot be held).
         """
         results = []
         with self._frames, self._sync.between_two_syncs():
-            for mapping, frame, built, future in burst:
+            for mapping, frame, future in burst:
                 key = (mapping.node_id, mapping.number)
                 with self._lock:
                     device = self._devices[mapping.node_id]
                     current = (key in self._streams and device.rpdos.get(mapping.number)
                                is mapping and device.last_sent.get(mapping.number) is frame)
-                    sent = device.sent_at.get(mapping.number, 0.0) >= built
+                    sent = device.on_bus.get(mapping.number) is frame
                     closing = self._closing
                 if closing:
                     result = SdoResult.failed(f'{SHUTTING_DOWN}; nothing was sent')
@@ -390,10 +392,12 @@ class PdoService:
                     device = self._devices[key[0]]
                     mapping = device.rpdos.get(key[1])
                     if (self._closing or now > until or mapping is None
-                            or key[1] not in device.last_sent):
+                            or key[1] not in device.on_bus):
                         del self._streams[key]
                     elif device.sent_at.get(key[1], 0.0) < self._repeated_at:
-                        again.append((mapping, device.last_sent[key[1]]))
+                        # What the drive got last: a newer frame waiting for the SYNC (or
+                        # for the end of its message) is the next cycle's, not this one's.
+                        again.append((mapping, device.on_bus[key[1]]))
                 self._repeating = bool(self._streams) and self._sync.before_next_sync(
                     self._repeat_streams)
                 if not self._repeating:
@@ -563,6 +567,7 @@ class PdoService:
             device = self._devices[mapping.node_id]
             device.sent += 1
             device.sent_at[mapping.number] = time.monotonic()
+            device.on_bus[mapping.number] = frame
         return SdoResult.ok()
 
     def _flush(self, key: Tuple[int, int]) -> None:
@@ -600,6 +605,7 @@ class PdoService:
             device.heard = True
             if boot:
                 device.last_sent.clear()  # its RPDOs hold nothing of before
+                device.on_bus.clear()
                 device.life += 1
                 self._follow_stream((device.node_id, 0), 0.0)
             retry = (device.done < 0 and
@@ -644,6 +650,8 @@ class PdoService:
             device.last_sent = {number: data for number, data in device.last_sent.items()
                                 if number in rpdos and number in device.rpdos
                                 and rpdos[number].entries == device.rpdos[number].entries}
+            device.on_bus = {number: data for number, data in device.on_bus.items()
+                             if number in device.last_sent}
             device.tpdos, device.rpdos = tpdos, rpdos
             device.last_received.clear()
             self._follow_stream((node_id, 0), 0.0)
