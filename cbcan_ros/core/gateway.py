@@ -439,8 +439,8 @@ class Gateway:
         for plan in boots.plans:
             if not plan.boot or plan.node_id in config.guarded_nodes:
                 continue
-            timeouts[plan.node_id] = plan.loss_time(config.heartbeat_timeout)
-            if timeouts[plan.node_id] is None:
+            timeouts[plan.node_id] = loss_time = plan.loss_time(config.heartbeat_timeout)
+            if loss_time is None:
                 LOGGER.warning('node %s: its heartbeat_producer is 0 in the bus description and '
                                'it is not in node_guarding: the gateway cannot tell when it is '
                                'gone, and shows the last state it reported', plan.label)
@@ -457,9 +457,9 @@ class Gateway:
         if command not in nmt.COMMAND_NAMES:
             known = ', '.join(f'{code} {name}' for code, name in nmt.COMMAND_NAMES.items())
             return NmtResult(False, f'command {command} is not an NMT command: allowed {known}')
-        enabled = [drive for drive in self.drives.node_ids
-                   if node_id in (0, drive) and self.drives.enabled(drive)]
-        if command == nmt.STOP and enabled:
+        enabled = [drive for drive in self.drives.node_ids if command == nmt.STOP
+                   and node_id in (0, drive) and self.drives.enabled(drive)]
+        if enabled:
             # STOPPED, it takes neither PDO nor SDO: no target, halt or stop reaches it, and
             # many drives run on at their last target. (Pre-operational and the resets leave
             # SDO, which the drive service then uses: ``HeartbeatMonitor.commanded``.)

@@ -37,11 +37,10 @@ FEEDBACK = (cia402.STATUSWORD, cia402.MODE_DISPLAY, cia402.POSITION_ACTUAL,
 COMMANDED = frozenset({cia402.CONTROLWORD, cia402.MODE, cia402.TARGET_POSITION,
                        cia402.TARGET_VELOCITY, cia402.TARGET_TORQUE,
                        cia402.PROFILE_VELOCITY_OBJECT})
-# What is read of a drive when it is first heard and after each boot: its feedback, its
-# error and modes, and the commanded values a PDO frame repeats.
 # Why a target queued to go by SDO was dropped: a newer one of the same object came first.
 REPLACED = 'a newer target replaced it before it was sent'
-
+# What is read of a drive when it is first heard and after each boot: its feedback, its
+# error and modes, and the commanded values a PDO frame repeats.
 INITIAL_READS = (*FEEDBACK, cia402.ERROR_CODE, cia402.SUPPORTED_MODES, *sorted(COMMANDED))
 
 

@@ -14,7 +14,6 @@
 """
 
 import asyncio
-from concurrent.futures import Future
 from dataclasses import replace
 import logging
 import struct
@@ -203,11 +202,12 @@ def _where_it_stands(drive: DriveRecord, status, commanded: Optional[int]) -> in
 
 
 def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
-                      closing: Callable[[], bool]) -> Optional['Future[SdoResult]']:
-    """Halt ``drive`` if it has waited too long for a target; return the halt's write, or None.
+                      closing: Callable[[], bool], tell: Callable[[DriveRecord], None]) -> bool:
+    """Halt ``drive`` if it has waited too long for a target; return whether it did.
 
     Not once the gateway is ``closing()``: its shutdown stop must be the last word. A halt
-    that could not be sent is taken back (``halt_not_sent``), so the next tick tries again.
+    that could not be sent is taken back (``_halt_answered``, which ``tell``s it with the
+    lock held), so the next tick tries again.
     """
     limit = settings.command_timeout
     with drive.sending:
@@ -218,7 +218,7 @@ def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
             if (not limit or status.state != cia402.OPERATION_ENABLED or status.needs_enable
                     or drive.halted_by or status.mode not in cia402.STREAMING_MODES
                     or time.monotonic() - drive.last_target < limit or closing()):
-                return None
+                return False
             drive.timeouts += 1
             drive.halted_by = 'timeout'
             drive.controlword |= cia402.HALT
@@ -227,36 +227,39 @@ def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
             values = {**stopping_target(drive, status, settings, commanded),
                       cia402.CONTROLWORD: word}
         written = drive.objects.write(values, HALT_TIMEOUT)
+    written.add_done_callback(lambda done: _halt_answered(drive, lock, count, done.result(),
+                                                          tell))
     # One line per drive; later halts are counted (diagnostics), not logged again.
     (LOGGER.warning if count == 1 else LOGGER.debug)(
         'drive %d: no target for %.3f s (drives.command_timeout): halted; the next target '
         'resumes it (halted this way %d times)', drive.node_id, limit, count)
-    return written
+    return True
 
 
-def halt_not_sent(drive: DriveRecord, lock, count: int, result: SdoResult) -> bool:
+def _halt_answered(drive: DriveRecord, lock, count: int, result: SdoResult,
+                   tell: Callable[[DriveRecord], None]) -> None:
     """Take back the command timeout's halt number ``count`` when ``result`` says it failed.
 
     The drive did not get it (NMT stopped: neither PDO nor SDO reaches it), so it may run on
     at its last target: it is shown not halted, and the next tick halts it again. Not when
-    something came since (a target, a command, another halt): that decided afresh. Returns
-    whether the halt was taken back; logged once until a halt is sent again.
+    something came since (a target, a command, another halt): that decided afresh. Logged
+    once until a halt is sent again.
     """
     with lock:
         if result.success:
             drive.halt_failing = False
-            return False
+            return
         if drive.halted_by != 'timeout' or drive.timeouts != count:
-            return False
+            return
         drive.halted_by = ''
         drive.controlword &= ~cia402.HALT
         drive.status = replace(drive.status, halted=False)
         first, drive.halt_failing = not drive.halt_failing, True
+        tell(drive)
     (LOGGER.error if first else LOGGER.debug)(
         'drive %d: the command timeout could not halt it (%s): it may run on at its last '
         'target; tried again until sent (not logged again until then)', drive.node_id,
         result.message)
-    return True
 
 
 async def watch_the_gateway(sdo_batch, drive: DriveRecord, lock, settings: DriveSettings,

@@ -115,9 +115,8 @@ class DriveService:
         self._closing = False
         # Set once shutdown has shown the drives' stops: what is taken later is not told.
         self._stops_shown = False
-        # Drives whose last target was not sent: the first failure of a run is logged, the
-        # rest of it not (a stream at 250 Hz would log every one), until one is sent again.
-        # Drives whose targets are not sent (an incident): since when they go out again
+        # Drives whose targets are not sent (an incident: its first failure is logged, the
+        # rest not, as a stream at 250 Hz would log every one): since when they go out again
         self._targets_failing: Dict[int, Optional[float]] = {}
         self._checks = checks.RequestChecks(self._drives, self._lock, write_protection,
                                             bus_down, lambda: self._closing)
@@ -734,19 +733,10 @@ class DriveService:
             for drive in self._drives.values():
                 if not self._closing:
                     poll(drive, self._lock, self.read_feedback)
-                halt = safety.halt_if_timed_out(drive, self.settings, self._lock,
-                                                lambda: self._closing)
-                if halt is not None:
+                if safety.halt_if_timed_out(drive, self.settings, self._lock,
+                                            lambda: self._closing, self._tell):
                     with self._lock:
                         self._tell(drive)
-                    count = drive.timeouts
-                    halt.add_done_callback(lambda done, d=drive, n=count: self._halt_sent(
-                        d, n, done.result()))
-
-    def _halt_sent(self, drive: DriveRecord, count: int, result: SdoResult) -> None:
-        if safety.halt_not_sent(drive, self._lock, count, result):
-            with self._lock:
-                self._tell(drive)
 
     # Checks, and the way out.
 
