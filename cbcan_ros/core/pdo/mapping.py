@@ -6,9 +6,10 @@ from the EDS when given, else unsigned.
 """
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 import math
 import struct
-from typing import Optional, Sequence, Tuple
+from typing import Dict, Optional, Sequence, Tuple
 
 from canopen.objectdictionary import datatypes, ObjectDictionary
 
@@ -118,20 +119,32 @@ class PdoMapping:
         """Return e.g. 'TPDO 1 of node 5'."""
         return f'{self.kind.upper()} {self.number} of node {self.node_id}'
 
-    @property
+    # Worked out once a mapping (never changed, replaced by a read): a stream of targets
+    # asks for them with every frame.
+    @cached_property
     def bits(self) -> int:
         """Return the mapped length in bits."""
         return sum(entry.bits for entry in self.entries)
 
-    @property
+    @cached_property
     def size(self) -> int:
         """Return the bytes a frame of this PDO needs."""
         return (self.bits + 7) // 8
 
-    @property
+    @cached_property
     def synchronous(self) -> bool:
         """Return whether its transmission type is synchronous (0..240)."""
         return self.transmission_type <= SYNCHRONOUS_MAX
+
+    @cached_property
+    def entries_of(self) -> Dict[Tuple[int, int], Tuple[MappedEntry, ...]]:
+        """Return the (non-dummy) entries mapping each object, by (index, subindex)."""
+        found: Dict[Tuple[int, int], Tuple[MappedEntry, ...]] = {}
+        for entry in self.entries:
+            if not entry.dummy:
+                key = (entry.index, entry.subindex)
+                found[key] = found.get(key, ()) + (entry,)
+        return found
 
 
 # The two classes made for every received frame are plain slotted classes: a frozen
@@ -184,10 +197,9 @@ def encode(mapping: PdoMapping, previous: bytes, values: Sequence[EntryValue]) -
     Raises ValueError naming the entry that is not mapped or whose value does not fit.
     """
     frame = int.from_bytes(previous, 'little')
+    entries_of = mapping.entries_of
     for given in values:
-        targets = [entry for entry in mapping.entries
-                   if (entry.index, entry.subindex) == (given.index, given.subindex)
-                   and not entry.dummy]
+        targets = entries_of.get((given.index, given.subindex))
         if not targets:
             mapped = ', '.join(entry.label for entry in mapping.entries if not entry.dummy)
             raise ValueError(f'0x{given.index:04X}:{given.subindex} is not mapped to '

@@ -493,11 +493,11 @@ class PdoService:
                 return SdoResult.failed(f'{SHUTTING_DOWN}; nothing was sent')
             device = self._devices[node_id]
             mapping = device.rpdos.get(number)
-            known = ', '.join(map(str, device.rpdos)) or 'none'
-            text = device.mapping_text
-        if mapping is None:
-            return SdoResult.failed(f'pdo {number}: node {node_id} has no RPDO {number} '
-                                    f'(its RPDOs: {known}; PDO mapping {text})')
+            if mapping is None:
+                known = ', '.join(map(str, device.rpdos)) or 'none'
+                return SdoResult.failed(f'pdo {number}: node {node_id} has no RPDO {number} '
+                                        f'(its RPDOs: {known}; PDO mapping '
+                                        f'{device.mapping_text})')
         refusal = self._write_refusal(mapping)
         if refusal is not None:
             return refusal
@@ -515,7 +515,8 @@ class PdoService:
         nothing.
         """
         device = self._devices[mapping.node_id]
-        if device.rpdos.get(mapping.number) != mapping:  # read again since it was checked
+        current = device.rpdos.get(mapping.number)
+        if current is not mapping and current != mapping:  # read again since it was checked
             return SdoResult.failed(f'{mapping.name}: its PDO mapping changed while the write '
                                     f'was checked; nothing was sent')
         previous = device.last_sent.get(mapping.number) or bytes(mapping.size)
