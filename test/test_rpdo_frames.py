@@ -337,6 +337,24 @@ def test_a_stop_or_boot_while_a_message_is_written_keeps_its_frames_off_the_bus(
         assert network.frames == sent, f'{name}: the target went out after it: {network.frames}'
 
 
+@pytest.mark.parametrize('stream', ['its first frame', 'run out of time'])
+def test_a_message_held_up_while_a_cycle_passes_still_sends_its_targets(stream):
+    # A message held up (a busy machine, a garbage collection) while the repeat before a
+    # SYNC runs: that repeat drops a stream with no frame on the bus yet, or one past its
+    # time. Once a defect: the message's frames were then dropped as if a stop had come,
+    # and each drive logged "a target was not sent".
+    service, network, sync = streaming_service()
+    if stream == 'run out of time':
+        service.write(NODE, 1, [EntryValue(TARGET, 0, 4)], stream=0.01).result(WAIT)
+    with service.one_cycle():
+        written = service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=0.01)
+        threading.Event().wait(0.05)  # past the stream's time
+        sync.before()
+    result = written.result(WAIT)
+    assert result.success, result.message
+    assert network.frames[-1] == (COB_ID, bytes(2) + (5).to_bytes(4, 'little'))
+
+
 @pytest.mark.parametrize('waiting', ['for its message to end', 'for the SYNC'])
 def test_a_cycle_without_a_frame_gets_the_one_sent_last_not_one_waiting(waiting):
     # The repeat a quarter period before the SYNC stands for the cycle the caller left

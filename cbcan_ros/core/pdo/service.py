@@ -82,6 +82,7 @@ class _Device:
     booted: bool = False  # configured by the boot service: read when it asks
     readers: List[Tuple[int, Future]] = field(default_factory=list)  # (request, its answer)
     life: int = 0         # boot-ups heard: each wipes the RPDOs' frames
+    streams_ended: int = 0  # times a stop, command or outage ended its streams (not time)
     failed_at: float = 0.0
     mapping_text: str = 'not read yet'
     received: int = 0
@@ -196,6 +197,7 @@ class PdoService:
             self._streams.clear()  # a stream resumes with its caller's next target
             for device in self._devices.values():
                 device.heard = False
+                device.streams_ended += 1
 
     def mappings(self, node_id: int) -> Tuple[Dict[int, PdoMapping], Dict[int, PdoMapping]]:
         """Return the TPDOs and RPDOs of a device served, by number (empty before read)."""
@@ -329,29 +331,30 @@ class PdoService:
                 if isinstance(frame, SdoResult):
                     return resolved(self._refused(mapping.node_id, frame))
                 self._follow_stream((mapping.node_id, mapping.number), seconds)
+                ended = self._devices[mapping.node_id].streams_ended
             burst = getattr(self._burst, 'frames', None)
             if burst is None:
                 return resolved(self._send(mapping, frame))
         future: Future = Future()
-        burst.append((mapping, frame, future))
+        burst.append((mapping, frame, future, ended))
         return future
 
-    def _send_burst(self, burst: List[Tuple[PdoMapping, bytes, Future]]) -> None:
+    def _send_burst(self, burst: List[Tuple[PdoMapping, bytes, Future, int]]) -> None:
         """Send the stream frames a ``one_cycle`` block built, back to back.
 
-        A frame goes only while its stream is still on and it is still the device's last
-        frame of its RPDO: a stop, a command, a boot, a mapping read or shutdown meanwhile
-        ended the stream (or replaced the frame), and a frame sent after it would undo it.
+        A frame goes only while no stop, command, outage, boot, mapping read or shutdown
+        ended its device's streams (or replaced the frame) since it was built: a frame sent
+        after it would undo it. A stream that merely ran out of time meanwhile (the message
+        held up longer than the stream is kept) does not keep it back: it is the newest target.
         One already sent (a SYNC's flush of its RPDO) is not sent twice. The gateway's SYNC thread
         waits for them (python-can's and the kernel's periodic tasks cannot be held).
         """
         results = []
         with self._frames, self._sync.between_two_syncs():
-            for mapping, frame, future in burst:
-                key = (mapping.node_id, mapping.number)
+            for mapping, frame, future, ended in burst:
                 with self._lock:
                     device = self._devices[mapping.node_id]
-                    current = (key in self._streams and device.rpdos.get(mapping.number)
+                    current = (device.streams_ended == ended and device.rpdos.get(mapping.number)
                                is mapping and device.last_sent.get(mapping.number) is frame)
                     sent = device.on_bus.get(mapping.number) is frame
                     closing = self._closing
@@ -377,6 +380,7 @@ class PdoService:
         if not seconds:
             for other in [other for other in self._streams if other[0] == key[0]]:
                 del self._streams[other]
+            self._devices[key[0]].streams_ended += 1
             return
         self._streams[key] = time.monotonic() + seconds
         if not self._repeating:
