@@ -24,7 +24,7 @@ import threading
 from typing import Callable, Dict, FrozenSet, Iterable, List, Optional, Tuple
 
 from ..pdo.mapping import EntryValue
-from ..pdo.service import PdoService
+from ..pdo.service import PdoService, REPLACED
 from ..sdo.request_queue import answer, resolved
 from ..sdo.requests import Access, SdoResult
 from . import cia402
@@ -37,8 +37,6 @@ FEEDBACK = (cia402.STATUSWORD, cia402.MODE_DISPLAY, cia402.POSITION_ACTUAL,
 COMMANDED = frozenset({cia402.CONTROLWORD, cia402.MODE, cia402.TARGET_POSITION,
                        cia402.TARGET_VELOCITY, cia402.TARGET_TORQUE,
                        cia402.PROFILE_VELOCITY_OBJECT})
-# Why a target queued to go by SDO was dropped: a newer one of the same object came first.
-REPLACED = 'a newer target replaced it before it was sent'
 # What is read of a drive when it is first heard and after each boot: its feedback, its
 # error and modes, and the commanded values a PDO frame repeats.
 INITIAL_READS = (*FEEDBACK, cia402.ERROR_CODE, cia402.SUPPORTED_MODES, *sorted(COMMANDED))

@@ -48,6 +48,8 @@ LOGGER = logging.getLogger(__name__)
 REREAD_INTERVAL = 2.0
 
 SHUTTING_DOWN = 'the gateway is shutting down'
+# Why a target waiting to be sent was dropped: a newer one for the same frame came first.
+REPLACED = 'a newer target replaced it before it was sent'
 
 
 @dataclass(frozen=True)
@@ -275,7 +277,8 @@ class PdoService:
         mapping = checked
         key = (node_id, number)
         if mapping.synchronous and self._sync.producing:
-            if stream and self._sync.open_for_rpdos():
+            if stream and (getattr(self._burst, 'frames', None) is not None
+                           or self._sync.open_for_rpdos()):
                 return self._send_stream(mapping, values, data, stream)
             future: Future = Future()
             with self._lock:
@@ -302,22 +305,38 @@ class PdoService:
     def one_cycle(self) -> Iterator[None]:
         """Have the stream frames written within reach the devices in one SYNC cycle.
 
-        For the targets of one command message: the SYNC producer decides once whether they
-        go at once or wait for the SYNC, and holds its SYNC while they are written
-        (``SyncProducer.one_cycle``); those going at once are built first and sent together
-        when the block ends, so a SYNC that comes anyway finds all of them sent or none.
+        For the targets of one command message: its synchronous stream frames are built
+        first and sent together when the block ends, so a SYNC that comes meanwhile finds
+        all of them sent or none. Whether they go at once is decided on entry
+        (``SyncProducer.one_cycle``, which holds its SYNC while they are written). Those
+        too late for the next SYNC go together right after a SYNC: the next one, or at
+        once when it went out while they were built (they are in time for the one after).
         """
         if getattr(self._burst, 'frames', None) is not None:
             yield  # within one already: its frames go with its own
             return
-        with self._sync.one_cycle():
-            self._burst.frames = [] if self._sync.open_for_rpdos() else None
-            try:
-                yield
-            finally:
-                frames, self._burst.frames = self._burst.frames, None
-                if frames:
-                    self._send_burst(frames)
+        frames: List[Tuple[PdoMapping, bytes, Future, int]] = []
+        opened = False
+        try:
+            with self._sync.one_cycle():
+                opened = self._sync.open_for_rpdos()
+                self._burst.frames = frames
+                try:
+                    yield
+                finally:
+                    self._burst.frames = None
+                    if opened and frames:
+                        self._send_burst(frames)
+        finally:
+            if frames and not opened:
+                self._send_after_sync(frames)
+
+    def _send_after_sync(self, burst: List[Tuple[PdoMapping, bytes, Future, int]]) -> None:
+        """Send a message's frames that came too late for the SYNC, right after one."""
+        if self._sync.open_for_rpdos():  # the SYNC went out while they were built
+            self._send_burst(burst)
+        elif not self._sync.after_next_sync(lambda: self._send_burst(burst)):
+            self._send_burst(burst)  # no SYNC comes (the bus is down): the send says so
 
     def _send_stream(self, mapping: PdoMapping, values: Sequence[EntryValue], data: bytes,
                      seconds: float) -> 'Future[SdoResult]':
@@ -343,29 +362,39 @@ class PdoService:
         """Send the stream frames a ``one_cycle`` block built, back to back.
 
         A frame goes only while no stop, command, outage, boot, mapping read or shutdown
-        ended its device's streams (or replaced the frame) since it was built: a frame sent
-        after it would undo it. A stream that merely ran out of time meanwhile (the message
-        held up longer than the stream is kept) does not keep it back: it is the newest target.
-        One already sent (a SYNC's flush of its RPDO) is not sent twice. The gateway's SYNC thread
-        waits for them (python-can's and the kernel's periodic tasks cannot be held).
+        ended its device's streams since it was built: sent after it, it would undo it. A
+        stream that merely ran out of time meanwhile (the message held up longer than the
+        stream is kept) does not keep it back: it is the newest target. When a newer message
+        replaced any of the frames (it came before these went out), none of them goes: the
+        devices take the newer one together. One already sent (a SYNC's flush of its RPDO) is
+        not sent twice. The gateway's SYNC thread waits for them (python-can's and the
+        kernel's periodic tasks cannot be held).
         """
         results = []
         with self._frames, self._sync.between_two_syncs():
-            for mapping, frame, future, ended in burst:
-                with self._lock:
+            with self._lock:
+                closing = self._closing
+                stopped, replaced, sent = set(), False, set()
+                for position, (mapping, frame, _, ended) in enumerate(burst):
                     device = self._devices[mapping.node_id]
-                    current = (device.streams_ended == ended and device.rpdos.get(mapping.number)
-                               is mapping and device.last_sent.get(mapping.number) is frame)
-                    sent = device.on_bus.get(mapping.number) is frame
-                    closing = self._closing
+                    if (device.streams_ended != ended
+                            or device.rpdos.get(mapping.number) is not mapping):
+                        stopped.add(position)
+                    elif device.last_sent.get(mapping.number) is not frame:
+                        replaced = True  # by a newer message's, being written or sent
+                    elif device.on_bus.get(mapping.number) is frame:
+                        sent.add(position)  # by a SYNC's flush of its RPDO
+            for position, (mapping, frame, future, _) in enumerate(burst):
                 if closing:
                     result = SdoResult.failed(f'{SHUTTING_DOWN}; nothing was sent')
-                elif not current:
+                elif position in stopped:
                     result = SdoResult.failed(
                         f'{mapping.name}: a command, stop or boot of node {mapping.node_id} '
                         f'came while this target was being written; it was not sent')
+                elif replaced:  # the whole message: its drives take the newer one together
+                    result = SdoResult.failed(f'{mapping.name}: {REPLACED}')
                 else:
-                    result = SdoResult.ok() if sent else self._send(mapping, frame)
+                    result = SdoResult.ok() if position in sent else self._send(mapping, frame)
                 results.append((future, result))
         for future, result in results:
             answer(future, result)
