@@ -470,6 +470,29 @@ def test_an_rpdo_mapping_an_object_the_gateway_does_not_command_repeats_the_driv
     assert axis.drive.value(MAX_TORQUE, 0) == struct.pack('<H', 1000)
 
 
+def test_an_enable_waits_for_the_pdo_mapping_being_read_and_targets_then_go_by_pdo(rig):
+    # Red team: drives enabled while the gateway still read their PDO mappings (one device
+    # after the other, some 0.1 s each) took their first second of streamed targets by SDO:
+    # applied at once instead of at a SYNC, and most of them dropped for newer ones.
+    axis = rig()
+    pdo = axis.gateway.node.gateway.pdo
+    release, read = threading.Event(), pdo._parameters.read
+    pdo._parameters.read = lambda *args: release.wait(WAIT) and read(*args)
+    pdo.read_again(NODE)  # a read under way, as at start with other devices before it
+    threading.Timer(1.0, release.set).start()
+    axis.enable(CSV)
+    bus, frames = axis.gateway.raw_bus(), []
+    try:
+        axis.target.publish(Float64(data=1.0))
+        watch(bus, frames, lambda seen: any(m.arbitration_id - NODE in (
+            *RPDO_COB_IDS.values(), SDO_REQUEST) for m in seen), 'the target sent')
+        wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    finally:
+        release.set()
+        bus.shutdown()
+    assert not target_writes(frames), 'the first target after the enable went by SDO'
+
+
 def test_a_value_written_by_sdo_through_the_gateway_is_what_its_rpdo_repeats(rig):
     # The user lowers the max torque (0x6072) that RPDO 2 maps beside the target velocity,
     # with the gateway's own sdo_write: the frames after it must carry the new limit, not

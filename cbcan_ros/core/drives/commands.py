@@ -32,6 +32,8 @@ SEND_TIMEOUT = 1.0
 HALT_WAIT = 2.0
 # How long enable waits for a halted axis to stand before it holds it where it is.
 STANDSTILL_WAIT = 0.5
+# How long enable waits for the drive's PDO mapping being read (``mapping_known``).
+MAPPING_WAIT = 2.0
 # The drive's re-reads (``read_wanted``) when the running sequence was asked for; None for
 # a stop, which goes to whatever drive is there.
 READS_AT_START: contextvars.ContextVar = contextvars.ContextVar('reads_at_start')
@@ -334,6 +336,7 @@ class DriveCommands:
                 raise DriveFailed(f'node {drive.node_id}: {drive.unwatched}; enable refused, '
                                   f'nothing was sent to the controlword (or give that up: '
                                   f'drives.keep_running_if_gateway_dies)')
+        await drive.objects.mapping_known(MAPPING_WAIT)
         self._service.set_enabled(drive, False)
         if self._service.status(drive.node_id).state != cia402.OPERATION_ENABLED:
             drive.pp_goal = None  # enabled afresh, a drive takes where it stands as its base

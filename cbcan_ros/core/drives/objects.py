@@ -18,7 +18,9 @@ the gateway never changes a drive's NMT state by itself, so a drive left pre-ope
 run by SDO.
 """
 
+import asyncio
 from concurrent.futures import Future
+import contextlib
 import struct
 import threading
 from typing import Callable, Dict, FrozenSet, Iterable, List, Optional, Tuple
@@ -314,6 +316,21 @@ class DriveObjects:
     def read_initial(self, timeout: float) -> 'Future[Dict[int, int]]':
         """Read what the gateway needs of a drive it now hears (see ``know_commanded``)."""
         return self.read(INITIAL_READS, timeout)
+
+    async def mapping_known(self, timeout: float) -> None:
+        """Wait until the PDO mapping being read (and what its RPDOs hold) is known.
+
+        Until then the drive is run by SDO: a mapping read takes some 0.1 s a device, one
+        device after the other, and a drive enabled meanwhile would take its first targets
+        by SDO (applied at once, not at a SYNC). Gives up after ``timeout`` (the drive is
+        then run by SDO until the read is done).
+        """
+        if self.node_id not in self._pdo.node_ids:
+            return
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(asyncio.wrap_future(self._pdo.mapping_read(self.node_id)),
+                                   timeout)
+            await asyncio.wait_for(asyncio.wrap_future(self.read_held(timeout)), timeout)
 
     def read_held(self, timeout: float) -> 'Future[None]':
         """Read what its RPDOs map and the gateway has no value of, when not yet.

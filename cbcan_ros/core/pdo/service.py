@@ -233,6 +233,21 @@ class PdoService:
             self._lock.notify_all()
         return future
 
+    def mapping_read(self, node_id: int) -> 'Future[str]':
+        """Return a future of the mapping read asked for last: '' once done, or why not.
+
+        Resolved at once when no read is under way or waiting.
+        """
+        with self._lock:
+            if self._closing:
+                return resolved(SHUTTING_DOWN)
+            device = self._devices[node_id]
+            if abs(device.done) >= device.wanted:
+                return resolved('' if device.done >= 0 else device.mapping_text)
+            future: Future = Future()
+            device.readers.append((device.wanted, future))
+        return future
+
     def _answer_readers(self, device: _Device, request: int, problem: str) -> None:
         with self._lock:
             answered = [future for wanted, future in device.readers if wanted <= request]
