@@ -22,11 +22,12 @@ from test_drives import CSP, CST, CSV, HOMING, NODE, PP, PV, SCALE, WAIT, watch
 
 from cbcan_ros.action import DriveMove
 from cbcan_ros.core.drives import cia402
-from cbcan_ros.core.drives.objects import REPLACED
 from cbcan_ros.core.drives.service import DriveService
 from cbcan_ros.core.nmt import OPERATIONAL
+from cbcan_ros.core.pdo.service import REPLACED
 from cbcan_ros.core.sdo.request_queue import resolved
 from cbcan_ros.core.sdo.requests import SdoResult
+from cbcan_ros.core.text import SHUTTING_DOWN
 from cbcan_ros.simulation.durand.drive_objects import (
     HOME_OFFSET,
     MAX_TORQUE,
@@ -602,6 +603,9 @@ def test_targets_sent_and_lost_by_turns_are_one_incident_logged_once(caplog):
     assert len(lines) == 1 and 'TIMEOUT' in lines[0], lines
     for outcome in [replaced, sent]:  # a replaced target is not a lost one
         service._log_failed_target(NODE + 1, outcome)
+    # Nor is one the shutdown kept back: the gateway says once that it is shutting down.
+    service._log_failed_target(NODE + 2, resolved(SdoResult.failed(
+        f'RPDO 1 of node {NODE + 2}: {SHUTTING_DOWN}; nothing was sent')))
     assert len([r for r in caplog.records if 'not sent' in r.message]) == 1
 
 

@@ -168,9 +168,11 @@ def test_a_short_joint_commands_array_naming_another_devices_joint_is_not_guesse
 
     def refused():
         axis.commands.publish(message)  # again until the subscription matched
-        return 'cannot be told; nothing was sent' in caplog.text
+        return 'which value is whose cannot be told' in caplog.text
     wait_until(refused, WAIT, 'the message refused, in the log')
     assert axis.drive.velocity == 0
+    line = next(r.getMessage() for r in caplog.records if 'cannot be told' in r.getMessage())
+    assert '3 joints and has 1 position, 2 velocity, 0 effort values' in line, line
 
 
 def test_a_joint_named_twice_in_joint_commands_gets_neither_value(rig, caplog):

@@ -378,6 +378,19 @@ def test_at_shutdown_the_frame_the_drive_keeps_for_the_sync_carries_the_stop(rig
     assert last_controlword_in_rpdo1(frames) == 0x0002
 
 
+def test_a_halted_drive_stopped_at_shutdown_is_no_longer_shown_halted(rig):
+    # Red team: after a halt, the shutdown's quick stop left drive_state showing the drive
+    # halted in SWITCH_ON_DISABLED, though the stop's controlword has no halt bit.
+    axis = rig()
+    axis.enable(CSV)
+    assert axis.command('halt').success
+    axis.gateway.node.gateway.drives._stop_motion('shutting down (a test)')
+    wait_until(lambda: axis.latest_state() in ('QUICK_STOP_ACTIVE', 'SWITCH_ON_DISABLED'),
+               WAIT, 'the drive shown stopped')
+    with axis._lock:
+        assert not axis.states[-1].halted
+
+
 def test_enable_on_a_halted_drive_releases_the_halt_and_targets_move_it_again(rig):
     # enable where resume was meant: the drive is already enabled, so no step of the power
     # state machine goes out. Once a defect: the halt bit stayed in the controlword, and

@@ -43,6 +43,7 @@ from .sdo.request_queue import answer, Deadlines, resolved
 from .sdo.requests import Access, batch_refusal, check_node_id, one_each, refusal, SdoResult
 from .sdo.transfer import run_local
 from .sdo.write_protection import WriteProtection
+from .text import SHUTTING_DOWN
 
 LOGGER = logging.getLogger(__name__)
 
@@ -52,7 +53,6 @@ VERSION = '0.1.0'
 # network waits for that poll: a shorter cycle lets a simulated device stop at once.
 NOTIFIER_CYCLE = 0.05
 
-SHUTTING_DOWN = 'the gateway is shutting down'
 
 @dataclass(frozen=True)
 class GatewayConfig:

@@ -1,4 +1,8 @@
-"""Text for messages: input is echoed back cut short, never whole."""
+"""Text for messages: input is echoed back cut short, never whole; words every service uses."""
+
+# Why a request was refused or not finished: the gateway is stopping (every service says so
+# alike, so a caller can tell it from a fault).
+SHUTTING_DOWN = 'the gateway is shutting down'
 
 
 def quoted(value, limit: int = 32) -> str:

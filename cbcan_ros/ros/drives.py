@@ -34,6 +34,7 @@ from std_msgs.msg import Float64
 
 from ..action import DriveMove
 from ..core.drives import cia402
+from ..core.drives.checks import SHUTTING_DOWN, target_value_problem
 from ..core.drives.service import DriveService
 from ..core.drives.status import DriveResult, DriveStatus, failed
 from ..core.values import int_given_as_float
@@ -55,6 +56,17 @@ JOINT_STATES_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 TARGET_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                         reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
+# A refusal's kind, as logged once an incident: a drive that passes through states as it
+# stops is refused for one reason, whichever state it shows, and numbers aside.
+_STATES_AND_NUMBERS = re.compile('|'.join(sorted(
+    [name for name, *_ in cia402.STATES] + [cia402.UNKNOWN], key=len, reverse=True))
+    + r'|[-\d.e+]+')
+
+
+def _field(mode: Optional[int]) -> Optional[str]:
+    """Return the JointState field a drive in ``mode`` takes, None for none."""
+    return {cia402.TARGET_POSITION: 'position', cia402.TARGET_VELOCITY: 'velocity',
+            cia402.TARGET_TORQUE: 'effort'}.get(cia402.TARGET_OF_MODE.get(mode))
 
 
 def fill_command(result: DriveResult, response) -> None:
@@ -221,10 +233,13 @@ class DriveTopics:
 
     def _on_joint_commands(self, message: JointState) -> None:
         targets = self._targets_of(message)
+        taken = bool(targets) and len(targets) == len(message.name)
         # One message, one SYNC cycle: no drive takes its target a cycle after another.
         with self._service.one_cycle():
             for joint, value in targets:
-                self._send_target(joint, value, 'joint_commands')
+                taken = self._send_target(joint, value, 'joint_commands') and taken
+        if taken:  # every joint named took its value: a problem of whole messages is over
+            self._logged.pop(None, None)
 
     def _targets_of(self, message: JointState) -> List[Tuple[Joint, float]]:
         """Return the (joint, value) pairs of a ``joint_commands`` message; log the rest.
@@ -233,8 +248,14 @@ class DriveTopics:
         that have that command interface: with mixed interfaces, a shorter array holds the
         values of the joints taking it, in the order of the names. Which joint takes which
         is told by the drives' modes, only when every name is a drive's in a mode that
-        takes a target and the array has as many values as those drives.
+        takes a target and the array has as many values as those drives. A message with a
+        value that is no target (not finite, too large) is refused whole: the joints of an
+        arm apply one control step together or not at all.
         """
+        if not message.name:
+            self._log_refusal('joint_commands: a message names no joint, so its values are '
+                              "no drive's; nothing was sent")
+            return []
         twice = sorted({name for name in message.name if message.name.count(name) > 1})
         if twice:
             # Two values for one drive: whichever frame the drive takes last would win.
@@ -243,9 +264,11 @@ class DriveTopics:
                               f'of the message was sent')
             return []
         joints = [self._by_name.get(name) for name in message.name]
-        fields = [self._field(joint) if joint else None for joint in joints]
+        modes = [self._service.status(joint.node_id).mode if joint else None
+                 for joint in joints]
+        fields = [_field(mode) for mode in modes]
         known = all(fields)
-        targets = []
+        targets, unclear = [], []
         for n, (name, joint, field) in enumerate(zip(message.name, joints, fields,
                                                      strict=True)):
             if joint is None:
@@ -258,56 +281,75 @@ class DriveTopics:
                 targets.append((joint, values[n]))
             elif field and known and len(values) == len(taking):
                 targets.append((joint, values[taking.index(n)]))
+            elif field:
+                unclear.append(f'{name!r} ({cia402.mode_name(modes[n])}: {field})')
             else:
                 self._log_refusal(f'joint_commands: joint {name!r} (node {joint.node_id}) '
-                                  f'{self._takes_none(joint, field)}; nothing was sent',
+                                  f'{self._takes_none(joint)}; nothing was sent',
                                   joint.node_id)
+        if unclear:
+            counts = ', '.join(f'{len(getattr(message, field))} {field}'
+                               for field in ('position', 'velocity', 'effort'))
+            self._log_refusal(f'joint_commands: the message names {len(message.name)} joints '
+                              f'and has {counts} values; which value is whose cannot be told '
+                              f'for joints {", ".join(unclear)}; nothing was sent to them')
+        mode_of = {joint.node_id: mode for joint, mode in zip(joints, modes, strict=True)
+                   if joint}
+        for joint, value in targets:
+            mode = mode_of[joint.node_id]
+            problem = (f'{value} is not a finite number' if not math.isfinite(value)
+                       else target_value_problem(mode, joint.to_device(mode, value)))
+            if problem:
+                self._log_refusal(f'joint_commands: joint {joint.name!r} (node '
+                                  f'{joint.node_id}): {problem}; nothing of the message was '
+                                  f'sent')
+                return []
         return targets
 
-    def _takes_none(self, joint: Joint, field: Optional[str]) -> str:
-        """Return why no value of a message can be the joint's target, for the log."""
+    def _takes_none(self, joint: Joint) -> str:
+        """Return why a drive in no mode that takes a target takes none, for the log."""
         status = self._service.status(joint.node_id)
-        if field is None and status.state != cia402.OPERATION_ENABLED:
+        if status.state != cia402.OPERATION_ENABLED:
             state = ('not heard (UNKNOWN)' if status.state == cia402.UNKNOWN
                      else f'{status.state}, not enabled')
             return f'is {state}, so it takes no target'
-        return (f'is in {cia402.mode_name(status.mode)}, which takes {field or "no target"}, '
-                f'and which value of the message is its cannot be told')
+        return f'is in {cia402.mode_name(status.mode)}, which takes no target'
 
-    def _field(self, joint: Joint) -> Optional[str]:
-        """Return the JointState field the drive's present mode takes, None for none."""
-        mode = self._service.status(joint.node_id).mode
-        return {cia402.TARGET_POSITION: 'position', cia402.TARGET_VELOCITY: 'velocity',
-                cia402.TARGET_TORQUE: 'effort'}.get(cia402.TARGET_OF_MODE.get(mode))
-
-    def _send_target(self, joint: Joint, value: float, topic: str) -> None:
+    def _send_target(self, joint: Joint, value: float, topic: str) -> bool:
+        """Send a target to the joint's drive; log why not (return whether it went)."""
         refusal = self._refusal()
         if refusal:
-            self._log_refusal(f'{topic}: {refusal}', joint.node_id)
-            return
+            self._log_refusal(f'{topic}: {refusal}')
+            return False
         if not math.isfinite(value):
             self._log_refusal(f'{topic}: target {value} for node {joint.node_id} is not a '
                               f'finite number; nothing was sent', joint.node_id)
-            return
+            return False
         mode = self._service.status(joint.node_id).mode
         result = self._service.target(joint.node_id, joint.to_device(mode, value))
         if not result.success:
-            self._log_refusal(f'{topic}: {result.message}', joint.node_id)
-        else:
-            self._logged.pop(joint.node_id, None)  # the incident is over: log the next one
+            # Shutting down concerns no drive: one line, not one a drive.
+            self._log_refusal(f'{topic}: {result.message}',
+                              None if SHUTTING_DOWN in result.message else joint.node_id)
+            return False
+        self._logged.pop(joint.node_id, None)  # the incident is over: log the next one
+        return True
 
     def _log_refusal(self, problem: str, node_id: Optional[int] = None) -> None:
-        """Log a refused target once per kind (numbers aside) and incident.
+        """Log a refused target once per kind (numbers and states aside) and incident.
 
         A stream of refused targets is one line, not a log flood; once the drive ``node_id``
-        takes a target again, its next refusal is a new incident and logged again.
+        takes a target again, its next refusal is a new incident and logged again. Refusals
+        of no drive's (``node_id`` None: a message's names or values, the node inactive or
+        shutting down) end once a whole message is taken.
         """
-        kind = re.sub(r'[-\d.e+]+', '#', problem)[:100]
+        kind = _STATES_AND_NUMBERS.sub('#', problem)[:100]
         logged = self._logged.setdefault(node_id, set())
         if kind not in logged:
             logged.add(kind)
-            until = f' until node {node_id} takes a target again' if node_id else ''
-            LOGGER.warning('%s (later ones like it are not logged%s)', problem, until)
+            until = (f'until node {node_id} takes a target again' if node_id
+                     else 'until a message is taken whole')
+            LOGGER.warning('%s (later ones like it are not logged %s)', problem, until)
 
     # The move action.
 

@@ -23,13 +23,13 @@ from .. import nmt
 from ..bus import BusStatus, prompt
 from ..program.download import ProgramSettings, Progress
 from ..sdo.request_queue import answer, resolved
+from ..text import SHUTTING_DOWN
 from .plan import BootSettings, DevicePlan
 from .process import BootEnded, BootFailed, BootLink, DeviceBoot
 
 LOGGER = logging.getLogger(__name__)
 
 WAITING, BOOTING, BOOTED, FAILED, IGNORED = 'WAITING', 'BOOTING', 'BOOTED', 'FAILED', 'IGNORED'
-SHUTTING_DOWN = 'the gateway is shutting down'
 DEFAULT_CALL_TIMEOUT = 30.0  # s a boot call waits for its boots when it names no timeout
 MAX_BOOT_WAIT = 3600.0  # s a boot call may wait (a boot with a program download is long)
 

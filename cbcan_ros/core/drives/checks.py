@@ -10,7 +10,7 @@ from typing import Callable, Dict, Optional
 
 from ..sdo import abort_codes
 from ..sdo.requests import check_node_id, MAX_TIMEOUT
-from ..text import quoted
+from ..text import quoted, SHUTTING_DOWN
 from ..values import int_given_as_float
 from . import cia402
 from .status import DriveRecord, DriveResult, DriveStatus, failed, shown
@@ -23,7 +23,6 @@ ENABLED_COMMANDS = frozenset({'halt', 'resume', 'home'})
 STOPPING_COMMANDS = frozenset({'quick_stop', 'disable'})
 MODES = tuple(cia402.MODE_NAMES)
 NOTHING_SENT = 'nothing was sent'
-SHUTTING_DOWN = 'the gateway is shutting down'
 
 
 def lost_problem(drive: DriveRecord, reads: Optional[int], status: DriveStatus,
@@ -179,8 +178,16 @@ def target_problem(status: DriveStatus, halted_by: str, value: float) -> Optiona
     if halted_by == 'command':
         return (f'node {status.node_id} was halted by a halt command: call resume first; '
                 f'{NOTHING_SENT}')
-    problem = value_problem('target', value, 16 if index == cia402.TARGET_TORQUE else 32)
+    problem = target_value_problem(status.mode, value)
     return f'{problem}; {NOTHING_SENT}' if problem else None
+
+
+def target_value_problem(mode: int, value: float) -> Optional[str]:
+    """Return why ``value`` (drive units) does not fit the target object of ``mode``, or None."""
+    index = cia402.TARGET_OF_MODE.get(mode)
+    if index is None:
+        return None
+    return value_problem('target', value, 16 if index == cia402.TARGET_TORQUE else 32)
 
 
 def value_problem(name: str, value: float, bits: int) -> Optional[str]:

@@ -75,7 +75,9 @@ def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
                 if not to_stop(drive):
                     continue
                 drive.controlword = word
-                drive.status = replace(drive.status, needs_enable=True)
+                # The stop's controlword has no halt bit: shown halted, the drive would say so.
+                drive.halted_by = ''
+                drive.status = replace(drive.status, needs_enable=True, halted=False)
                 stopped.append((drive, drive.updates))
             sent.append((drive.node_id, drive.objects.write_by_sdo(
                 {cia402.CONTROLWORD: word}, SHUTDOWN_WAIT)))

@@ -784,7 +784,9 @@ class DriveService:
         a newer target replaced in the queue was not lost.
         """
         result = done.result()
-        failed = not result.success and REPLACED not in result.message
+        # Neither a target a newer one replaced nor one the shutdown kept back was lost.
+        failed = (not result.success and REPLACED not in result.message
+                  and SHUTTING_DOWN not in result.message)
         now = time.monotonic()
         with self._lock:
             first = failed and node_id not in self._targets_failing

@@ -38,6 +38,7 @@ from ..nmt import BOOT_UP, HEARTBEAT_COB_BASE
 from ..sdo import abort_codes
 from ..sdo.request_queue import answer, resolved
 from ..sdo.requests import SdoResult
+from ..text import SHUTTING_DOWN
 from .mapping import describe, encode, EntryValue, PdoMapping, ReceivedPdo
 from .parameters import ParametersFailed, PdoParameters
 
@@ -47,7 +48,6 @@ LOGGER = logging.getLogger(__name__)
 # most this often.
 REREAD_INTERVAL = 2.0
 
-SHUTTING_DOWN = 'the gateway is shutting down'
 # Why a target waiting to be sent was dropped: a newer one for the same frame came first.
 REPLACED = 'a newer target replaced it before it was sent'
 

@@ -20,6 +20,7 @@ from .. import nmt
 from ..bus import prompt
 from ..protocol import MAX_NODE_ID
 from ..sdo.request_queue import answer, resolved
+from ..text import SHUTTING_DOWN
 from .download import (
     MAX_IMAGE,
     MAX_PROGRAM,
@@ -36,7 +37,6 @@ from .download import (
 
 LOGGER = logging.getLogger(__name__)
 
-SHUTTING_DOWN = 'the gateway is shutting down'
 CANCELLED = 'cancelled by the caller'
 STOP_WAIT = 2.0  # s shutdown waits for the downloads to end and be answered
 

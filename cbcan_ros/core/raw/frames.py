@@ -31,6 +31,7 @@ import can
 
 from ..bus import BusDown, BusSupervisor
 from ..sdo.write_protection import WriteProtection
+from ..text import SHUTTING_DOWN
 from .filters import exact_entry, EXTENDED_MASK, FrameFilters, STANDARD_MASK
 
 LOGGER = logging.getLogger(__name__)
@@ -317,7 +318,7 @@ class RawFrames:
     def _check(self, frame: Frame) -> Tuple[str, str]:
         """Return (kind, why) when ``frame`` may not be sent, else ('', '')."""
         if self._shutting_down():
-            return 'shutting down', 'the gateway is shutting down'
+            return 'shutting down', SHUTTING_DOWN
         if frame.is_error:
             return 'error frame', 'is_error: error frames come from adapters, none is sent'
         highest = EXTENDED_MASK if frame.is_extended else STANDARD_MASK

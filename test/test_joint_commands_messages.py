@@ -1,0 +1,150 @@
+"""A ``~/joint_commands`` message is taken whole or not at all, and each problem is one log line.
+
+Two simulated drives of one gateway, as an arm's joints: a controller that sends a value that
+is no target for one joint (NaN, out of range) must move neither, and a message whose arrays
+do not fit its names, a message naming no joint, or a drive passing through states as it
+stops is told once, not once a drive or a state.
+"""
+
+import logging
+import threading
+import time
+
+import pytest
+from sensor_msgs.msg import JointState
+from test_drives import CSV, SCALE, WAIT
+
+from cbcan_ros.simulation.durand.drive import DurandDrive
+from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
+
+from conftest import Harness, new_channel, wait_until
+
+JOINTS = {7: 'shoulder', 8: 'elbow'}
+
+
+@pytest.fixture
+def arm(ros_context, start_durand, caplog):
+    """Return (gateway, drives by node id, the joint_commands publisher), both drives in CSV."""
+    caplog.set_level(logging.WARNING, logger='cbcan_ros.ros.drives')
+    channel = new_channel()
+    drives = {node_id: start_durand(node_id, kind=DurandDrive, channel=channel,
+                                    pdos=default_drive_pdos()) for node_id in JOINTS}
+    parameters = {'can.channel': channel, 'simulation.devices': None,
+                  'drives.nodes': list(JOINTS), 'drives.command_timeout': 0.0,
+                  'drives.consumer_time': 3.0}
+    for node_id, joint in JOINTS.items():
+        parameters.update({f'node_{node_id}.joint': joint,
+                           f'node_{node_id}.position_scale': SCALE,
+                           f'node_{node_id}.velocity_scale': SCALE})
+    gateway = Harness(parameters)
+    try:
+        commands = gateway.client_node.create_publisher(JointState, '/cbcan/joint_commands',
+                                                        10)
+        for node_id in JOINTS:
+            assert gateway.call('nmt_command', node_id=node_id, command=1).success
+            wait_until(lambda node_id=node_id: gateway.call(
+                'drive_command', node_id=node_id, command='enable', mode=CSV).success,
+                WAIT, f'drive {node_id} enabled')
+        yield gateway, drives, commands
+    finally:
+        gateway.close()
+
+
+def lines(caplog, text: str) -> list:
+    return [record.getMessage() for record in caplog.records if text in record.getMessage()]
+
+
+def moving_at(drives, commands, velocities) -> None:
+    """Publish a whole message until both drives run at ``velocities`` (joint units)."""
+    message = JointState(name=list(JOINTS.values()), velocity=list(velocities))
+
+    def taken():
+        commands.publish(message)
+        return all(drive.velocity == round(velocity * SCALE)
+                   for drive, velocity in zip(drives.values(), velocities, strict=True))
+    wait_until(taken, WAIT, f'both drives at {velocities}')
+
+
+@pytest.mark.parametrize('bad', [float('nan'), float('inf'), 1e12])
+def test_a_message_with_a_value_that_is_no_target_moves_no_joint(arm, caplog, bad):
+    # Red team: the other joints took the message and the bad one held, so the arm left its
+    # path; then the bad joint rejoined a message later than the others.
+    _, drives, commands = arm
+    moving_at(drives, commands, (0.25, 0.25))
+    message = JointState(name=list(JOINTS.values()), velocity=[0.5, bad])
+
+    def refused():
+        commands.publish(message)
+        return lines(caplog, 'nothing of the message was sent')
+    wait_until(refused, WAIT, 'the message refused, in the log')
+    line = lines(caplog, 'nothing of the message was sent')[0]
+    assert "'elbow' (node 8)" in line, line
+    assert [drive.velocity for drive in drives.values()] == [250, 250]
+    moving_at(drives, commands, (0.5, 0.5))  # a whole message: the incident is over
+    wait_until(lambda: refused() and len(lines(caplog, 'nothing of the message')) == 2, WAIT,
+               'the next incident logged')
+
+
+def test_a_message_whose_arrays_do_not_fit_its_names_is_one_line_naming_them(arm, caplog):
+    _, drives, commands = arm
+    message = JointState(name=list(JOINTS.values()), velocity=[0.5])  # one value, two names
+
+    def refused():
+        commands.publish(message)
+        return lines(caplog, 'which value is whose')
+    wait_until(refused, WAIT, 'the message refused, in the log')
+    for _ in range(5):
+        commands.publish(message)
+
+    def after_them():  # messages are taken in order: once this one is, the repeats were
+        commands.publish(JointState(velocity=[0.5]))
+        return lines(caplog, 'names no joint')
+    wait_until(after_them, WAIT, 'the repeats taken')
+    found = lines(caplog, 'which value is whose')
+    assert len(found) == 1, found
+    assert ('names 2 joints and has 0 position, 1 velocity, 0 effort values' in found[0]
+            and "'shoulder' (cyclic synchronous velocity (CSV): velocity)" in found[0]), found
+    assert [drive.velocity for drive in drives.values()] == [0, 0]
+
+
+def test_a_message_naming_no_joint_says_so(arm, caplog):
+    _, _, commands = arm
+
+    def refused():
+        commands.publish(JointState(velocity=[0.5, 0.5]))
+        return lines(caplog, 'names no joint')
+    wait_until(refused, WAIT, 'the message refused, in the log')
+
+
+def test_a_drive_stopping_while_its_targets_stream_is_one_line(arm, caplog):
+    # Red team: a quick stop gave three lines, one for each state the drive passed through
+    # while the controller went on streaming.
+    gateway, drives, commands = arm
+    moving_at(drives, commands, (0.25, 0.25))
+    message = JointState(name=list(JOINTS.values()), velocity=[0.25, 0.25])
+    streaming, published = threading.Event(), [0]
+    streaming.set()
+
+    def stream():
+        while streaming.is_set():
+            commands.publish(message)
+            published[0] += 1
+            time.sleep(0.004)  # a 250 Hz controller's period
+    controller = threading.Thread(target=stream, daemon=True)
+    controller.start()
+    try:
+        assert gateway.call('drive_command', node_id=7, command='quick_stop').success
+        wait_until(lambda: gateway.node.gateway.drives.status(7).state
+                   == 'SWITCH_ON_DISABLED', WAIT, 'the drive shown stopped')
+        after = published[0]
+        wait_until(lambda: published[0] > after + 10, WAIT, 'targets streamed to it')
+    finally:
+        streaming.clear()
+        controller.join()
+
+    def after_them():  # messages are taken in order: once this one is, the others were
+        commands.publish(JointState(name=['nobody'], velocity=[0.5]))
+        return lines(caplog, "'nobody' is no drive's")
+    wait_until(after_them, WAIT, 'the streamed messages taken')
+    found = lines(caplog, 'enable first')
+    assert len(found) == 1, found
