@@ -6,14 +6,19 @@ do not fit its names, a message naming no joint, or a drive passing through stat
 stops is told once, not once a drive or a state.
 """
 
+from dataclasses import replace
 import logging
 import threading
 import time
+from types import SimpleNamespace
 
 import pytest
 from sensor_msgs.msg import JointState
 from test_drives import CSV, SCALE, WAIT
 
+from cbcan_ros.core.drives.status import DriveResult, DriveStatus
+from cbcan_ros.ros.drive_parameters import Joint
+from cbcan_ros.ros.drives import DriveTopics
 from cbcan_ros.simulation.durand.drive import DurandDrive
 from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
 
@@ -148,3 +153,25 @@ def test_a_drive_stopping_while_its_targets_stream_is_one_line(arm, caplog):
     wait_until(after_them, WAIT, 'the streamed messages taken')
     found = lines(caplog, 'enable first')
     assert len(found) == 1, found
+
+
+def test_a_refusal_of_the_whole_gateway_is_one_line_an_incident_on_any_topic(caplog):
+    # The node inactive (or shutting down) refuses every drive's targets for one reason:
+    # one line, not one a drive, and again once a target was taken in between.
+    caplog.set_level(logging.WARNING, logger='cbcan_ros.ros.drives')
+    topics = DriveTopics.__new__(DriveTopics)  # the log's book-keeping alone
+    status = DriveStatus(7, state='OPERATION_ENABLED', mode=CSV)
+    topics._service = SimpleNamespace(status=lambda node_id: replace(status, node_id=node_id),
+                                      target=lambda node_id, value: DriveResult(True, 'sent',
+                                                                                status))
+    topics._logged, inactive = {}, ['the node is inactive; nothing was sent']
+    topics._refusal = lambda: inactive[0]
+    for _ in range(3):
+        for node_id, name in JOINTS.items():
+            assert not topics._send_target(Joint(node_id, name), 0.5, f'node_{node_id}/target')
+    assert len(lines(caplog, 'inactive')) == 1
+    inactive[0] = None
+    assert topics._send_target(Joint(7, 'shoulder'), 0.5, 'node_7/target')
+    inactive[0] = 'the node is inactive; nothing was sent'
+    assert not topics._send_target(Joint(8, 'elbow'), 0.5, 'node_8/target')
+    assert len(lines(caplog, 'inactive')) == 2

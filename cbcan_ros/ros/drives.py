@@ -56,6 +56,8 @@ JOINT_STATES_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 TARGET_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                         reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
+# The incident of refusals that concern the gateway, not one drive: no drive has node id 0.
+GATEWAY_WIDE = 0
 # A refusal's kind, as logged once an incident: a drive that passes through states as it
 # stops is refused for one reason, whichever state it shows, and numbers aside.
 _STATES_AND_NUMBERS = re.compile('|'.join(sorted(
@@ -319,7 +321,7 @@ class DriveTopics:
         """Send a target to the joint's drive; log why not (return whether it went)."""
         refusal = self._refusal()
         if refusal:
-            self._log_refusal(f'{topic}: {refusal}')
+            self._log_refusal(f'{topic}: {refusal}', GATEWAY_WIDE)
             return False
         if not math.isfinite(value):
             self._log_refusal(f'{topic}: target {value} for node {joint.node_id} is not a '
@@ -330,25 +332,29 @@ class DriveTopics:
         if not result.success:
             # Shutting down concerns no drive: one line, not one a drive.
             self._log_refusal(f'{topic}: {result.message}',
-                              None if SHUTTING_DOWN in result.message else joint.node_id)
+                              GATEWAY_WIDE if SHUTTING_DOWN in result.message
+                              else joint.node_id)
             return False
-        self._logged.pop(joint.node_id, None)  # the incident is over: log the next one
+        for incident in (joint.node_id, GATEWAY_WIDE):  # over: the next one is logged
+            self._logged.pop(incident, None)
         return True
 
     def _log_refusal(self, problem: str, node_id: Optional[int] = None) -> None:
         """Log a refused target once per kind (numbers and states aside) and incident.
 
         A stream of refused targets is one line, not a log flood; once the drive ``node_id``
-        takes a target again, its next refusal is a new incident and logged again. Refusals
-        of no drive's (``node_id`` None: a message's names or values, the node inactive or
-        shutting down) end once a whole message is taken.
+        takes a target again, its next refusal is a new incident and logged again. Those of
+        a whole ``joint_commands`` message (``node_id`` None: its names or values) end once a
+        message is taken whole; those of the gateway (``GATEWAY_WIDE``: inactive, shutting
+        down) once any target is taken.
         """
         kind = _STATES_AND_NUMBERS.sub('#', problem)[:100]
         logged = self._logged.setdefault(node_id, set())
         if kind not in logged:
             logged.add(kind)
-            until = (f'until node {node_id} takes a target again' if node_id
-                     else 'until a message is taken whole')
+            until = ('until a message is taken whole' if node_id is None
+                     else 'until a target is taken' if node_id == GATEWAY_WIDE
+                     else f'until node {node_id} takes a target again')
             LOGGER.warning('%s (later ones like it are not logged %s)', problem, until)
 
     # The move action.
