@@ -422,6 +422,28 @@ def test_a_message_held_up_while_a_cycle_passes_still_sends_its_targets(stream):
     assert network.frames[-1] == (COB_ID, bytes(2) + (5).to_bytes(4, 'little'))
 
 
+def test_a_stream_whose_first_frame_still_waits_repeats_no_frame_from_before_it():
+    # Red team: on a vendor layout the repeat sent an enable step's frame (controlword
+    # 0x0006) again after the enable answered, because the stream's first frame was still
+    # waiting for the SYNC: the drive switched its power stage off, then ran on the next
+    # frame with nobody enabling it.
+    service, network, sync = streaming_service()
+    service.write(NODE, 1, [EntryValue(TARGET, 0, 4)], stream=10.0)  # a stream before
+    sync.before()
+    service.write(NODE, 1, [EntryValue(CONTROLWORD, 0, 0x0006)])  # then an enable step
+    sync.sync()
+    sync.before()  # a cycle with no stream
+    before = list(network.frames)
+    sync.open = False  # the first target comes too late for the next SYNC: it waits
+    with service.one_cycle():
+        written = service.write(NODE, 1, [EntryValue(TARGET, 0, 5)], stream=10.0)
+    sync.before()  # the cycle's repeat
+    assert network.frames == before, f'a frame from before the stream went: {network.frames}'
+    sync.sync()
+    assert written.result(WAIT).success
+    assert network.frames[-1] == (COB_ID, bytes([6, 0]) + (5).to_bytes(4, 'little'))
+
+
 @pytest.mark.parametrize('waiting', ['for its message to end', 'for the SYNC'])
 def test_a_cycle_without_a_frame_gets_the_one_sent_last_not_one_waiting(waiting):
     # The repeat a quarter period before the SYNC stands for the cycle the caller left

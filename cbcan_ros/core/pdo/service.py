@@ -76,6 +76,9 @@ class _Device:
     last_sent: Dict[int, bytes] = field(default_factory=dict)  # RPDO: its newest frame
     # RPDO: the frame last sent (the newest may wait for the SYNC, or for its message's end)
     on_bus: Dict[int, bytes] = field(default_factory=dict)
+    # RPDO: the frame of its stream last sent, which the stream's repeat sends again: not a
+    # frame from before the stream (a command's, whose controlword is no longer the drive's)
+    stream_on_bus: Dict[int, bytes] = field(default_factory=dict)
     last_received: Dict[int, float] = field(default_factory=dict)
     sent_at: Dict[int, float] = field(default_factory=dict)  # RPDO: when its frame last went
     heard: bool = False
@@ -200,6 +203,7 @@ class PdoService:
             for device in self._devices.values():
                 device.heard = False
                 device.streams_ended += 1
+                device.stream_on_bus.clear()
 
     def mappings(self, node_id: int) -> Tuple[Dict[int, PdoMapping], Dict[int, PdoMapping]]:
         """Return the TPDOs and RPDOs of a device served, by number (empty before read)."""
@@ -424,7 +428,9 @@ class PdoService:
         if not seconds:
             for other in [other for other in self._streams if other[0] == key[0]]:
                 del self._streams[other]
-            self._devices[key[0]].streams_ended += 1
+            device = self._devices[key[0]]
+            device.streams_ended += 1
+            device.stream_on_bus.clear()
             return
         self._streams[key] = time.monotonic() + seconds
         if not self._repeating:
@@ -439,13 +445,16 @@ class PdoService:
                 for key, until in list(self._streams.items()):
                     device = self._devices[key[0]]
                     mapping = device.rpdos.get(key[1])
-                    if (self._closing or now > until or mapping is None
-                            or key[1] not in device.on_bus):
+                    if self._closing or now > until or mapping is None:
                         del self._streams[key]
-                    elif device.sent_at.get(key[1], 0.0) < self._repeated_at:
-                        # What the drive got last: a newer frame waiting for the SYNC (or
-                        # for the end of its message) is the next cycle's, not this one's.
-                        again.append((mapping, device.on_bus[key[1]]))
+                        device.stream_on_bus.pop(key[1], None)
+                    elif (key[1] in device.stream_on_bus
+                          and device.sent_at.get(key[1], 0.0) < self._repeated_at):
+                        # What the drive got last of the stream: a newer frame waiting for
+                        # the SYNC (or its message's end) is the next cycle's; one from
+                        # before the stream (its first frame still waits) carries an older
+                        # controlword, which could switch the drive off.
+                        again.append((mapping, device.stream_on_bus[key[1]]))
                 self._repeating = bool(self._streams) and self._sync.before_next_sync(
                     self._repeat_streams)
                 if not self._repeating:
@@ -617,6 +626,8 @@ class PdoService:
             device.sent += 1
             device.sent_at[mapping.number] = time.monotonic()
             device.on_bus[mapping.number] = frame
+            if (mapping.node_id, mapping.number) in self._streams:
+                device.stream_on_bus[mapping.number] = frame
         return SdoResult.ok()
 
     def _flush(self, key: Tuple[int, int]) -> None:
