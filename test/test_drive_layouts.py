@@ -481,7 +481,9 @@ def test_an_enable_waits_for_the_pdo_mapping_being_read_and_targets_then_go_by_p
     pdo._parameters.read = lambda *args: release.wait(WAIT) and read(*args)
     pdo.read_again(NODE)  # a read under way, as at start with other devices before it
     threading.Timer(1.0, release.set).start()
-    axis.enable(CSV)
+    # The wait is not the command's time: the steps still get the whole timeout after it.
+    enabled = axis.command('enable', CSV, timeout=1.0)
+    assert enabled.success, enabled.message
     bus, frames = axis.gateway.raw_bus(), []
     try:
         axis.target.publish(Float64(data=1.0))

@@ -59,9 +59,13 @@ def lines(caplog, text: str) -> list:
     return [record.getMessage() for record in caplog.records if text in record.getMessage()]
 
 
-def moving_at(drives, commands, velocities) -> None:
-    """Publish a whole message until both drives run at ``velocities`` (joint units)."""
-    message = JointState(name=list(JOINTS.values()), velocity=list(velocities))
+def moving_at(drives, commands, velocities, names=tuple(JOINTS.values())) -> None:
+    """Publish a whole message until both drives run at ``velocities`` (joint units).
+
+    ``names`` beyond the drives' are joints of other hardware, each given 0.
+    """
+    message = JointState(name=list(names),
+                         velocity=list(velocities) + [0.0] * (len(names) - len(velocities)))
 
     def taken():
         commands.publish(message)
@@ -71,12 +75,15 @@ def moving_at(drives, commands, velocities) -> None:
 
 
 @pytest.mark.parametrize('bad', [float('nan'), float('inf'), 1e12])
-def test_a_message_with_a_value_that_is_no_target_moves_no_joint(arm, caplog, bad):
+@pytest.mark.parametrize('other', ['', 'gripper'])
+def test_a_message_with_a_value_that_is_no_target_moves_no_joint(arm, caplog, bad, other):
     # Red team: the other joints took the message and the bad one held, so the arm left its
-    # path; then the bad joint rejoined a message later than the others.
+    # path; then the bad joint rejoined a message later than the others. Once also: a joint
+    # of other hardware named in every message kept the next incident from the log.
     _, drives, commands = arm
-    moving_at(drives, commands, (0.25, 0.25))
-    message = JointState(name=list(JOINTS.values()), velocity=[0.5, bad])
+    names = list(JOINTS.values()) + ([other] if other else [])
+    moving_at(drives, commands, (0.25, 0.25), names)
+    message = JointState(name=names, velocity=[0.5, bad] + ([0.0] if other else []))
 
     def refused():
         commands.publish(message)
@@ -85,7 +92,7 @@ def test_a_message_with_a_value_that_is_no_target_moves_no_joint(arm, caplog, ba
     line = lines(caplog, 'nothing of the message was sent')[0]
     assert "'elbow' (node 8)" in line, line
     assert [drive.velocity for drive in drives.values()] == [250, 250]
-    moving_at(drives, commands, (0.5, 0.5))  # a whole message: the incident is over
+    moving_at(drives, commands, (0.5, 0.5), names)  # a whole message: the incident is over
     wait_until(lambda: refused() and len(lines(caplog, 'nothing of the message')) == 2, WAIT,
                'the next incident logged')
 

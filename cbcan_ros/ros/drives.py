@@ -56,8 +56,11 @@ JOINT_STATES_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 TARGET_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                         reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
-# The incident of refusals that concern the gateway, not one drive: no drive has node id 0.
+# The incidents of refusals that concern no one drive (no drive has node id 0 or -1): the
+# gateway's (inactive, shutting down), and joints a message names that are no drive's (a
+# message may name joints of other hardware in every message: logged once, not again).
 GATEWAY_WIDE = 0
+OTHER_HARDWARE = -1
 # A refusal's kind, as logged once an incident: a drive that passes through states as it
 # stops is refused for one reason, whichever state it shows, and numbers aside.
 _STATES_AND_NUMBERS = re.compile('|'.join(sorted(
@@ -235,13 +238,16 @@ class DriveTopics:
 
     def _on_joint_commands(self, message: JointState) -> None:
         targets = self._targets_of(message)
-        taken = bool(targets) and len(targets) == len(message.name)
+        drives = sum(1 for name in message.name if name in self._by_name)
+        taken = bool(targets) and len(targets) == drives
         # One message, one SYNC cycle: no drive takes its target a cycle after another.
         with self._service.one_cycle():
             for joint, value in targets:
                 taken = self._send_target(joint, value, 'joint_commands') and taken
-        if taken:  # every joint named took its value: a problem of whole messages is over
+        if taken:  # every drive named took its value: a problem of whole messages is over
             self._logged.pop(None, None)
+            if drives == len(message.name):  # and no joint of other hardware is named
+                self._logged.pop(OTHER_HARDWARE, None)
 
     def _targets_of(self, message: JointState) -> List[Tuple[Joint, float]]:
         """Return the (joint, value) pairs of a ``joint_commands`` message; log the rest.
@@ -275,7 +281,8 @@ class DriveTopics:
                                                      strict=True)):
             if joint is None:
                 self._log_refusal(f"joint_commands: joint {name!r} is no drive's (joints: "
-                                  f'{", ".join(self._by_name) or "none"})')
+                                  f'{", ".join(self._by_name) or "none"}); left out',
+                                  OTHER_HARDWARE)
                 continue
             values = getattr(message, field) if field else ()
             taking = [k for k, other in enumerate(fields) if other == field]
@@ -345,8 +352,9 @@ class DriveTopics:
         A stream of refused targets is one line, not a log flood; once the drive ``node_id``
         takes a target again, its next refusal is a new incident and logged again. Those of
         a whole ``joint_commands`` message (``node_id`` None: its names or values) end once a
-        message is taken whole; those of the gateway (``GATEWAY_WIDE``: inactive, shutting
-        down) once any target is taken.
+        message's drives all take theirs; those of the gateway (``GATEWAY_WIDE``: inactive,
+        shutting down) once any target is taken; joints of other hardware
+        (``OTHER_HARDWARE``) once a message names only drives and is taken whole.
         """
         kind = _STATES_AND_NUMBERS.sub('#', problem)[:100]
         logged = self._logged.setdefault(node_id, set())
@@ -354,6 +362,7 @@ class DriveTopics:
             logged.add(kind)
             until = ('until a message is taken whole' if node_id is None
                      else 'until a target is taken' if node_id == GATEWAY_WIDE
+                     else 'until a message names only drives' if node_id == OTHER_HARDWARE
                      else f'until node {node_id} takes a target again')
             LOGGER.warning('%s (later ones like it are not logged %s)', problem, until)
 

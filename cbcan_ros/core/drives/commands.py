@@ -40,6 +40,8 @@ READS_AT_START: contextvars.ContextVar = contextvars.ContextVar('reads_at_start'
 # Whether the running sequence needs the drive OPERATION_ENABLED by an enable of ours (a move,
 # halt, resume, homing): it ends when the drive leaves that, however it left.
 ENABLED_ONLY: contextvars.ContextVar = contextvars.ContextVar('enabled_only', default=False)
+# The running sequence's time limit (an ``asyncio.timeout``; its deadline None: no limit).
+TIME_LIMIT: contextvars.ContextVar = contextvars.ContextVar('time_limit', default=None)
 
 
 class DriveFailed(Exception):
@@ -146,7 +148,8 @@ class DriveCommands:
         service, node_id = self._service, drive.node_id
         try:
             # In this task (not wait_for's own): a cancel reaches the sequence at once.
-            async with asyncio.timeout(timeout or None):
+            async with asyncio.timeout(timeout or None) as limit:
+                TIME_LIMIT.set(limit)
                 message = await sequence()
             return DriveResult(True, message, service.status(node_id))
         except DriveFailed as failure:
@@ -310,6 +313,17 @@ class DriveCommands:
             await self._send(drive, {cia402.MODE: mode})
             await self._until(drive, lambda status: status.mode == mode)
 
+    async def _mapping_known(self, drive) -> None:
+        """Wait for the drive's PDO mapping being read; that wait is not the command's time."""
+        loop, limit = asyncio.get_running_loop(), TIME_LIMIT.get()
+        deadline = limit.when() if limit is not None else None
+        if deadline is not None:
+            limit.reschedule(deadline + MAPPING_WAIT)
+        began = loop.time()
+        await drive.objects.mapping_known(MAPPING_WAIT)
+        if deadline is not None:
+            limit.reschedule(deadline + loop.time() - began)
+
     def _shows_mode(self, drive, mode: int) -> bool:
         """Return whether the drive shows ``mode``; if so, its frames carry that mode now.
 
@@ -336,7 +350,7 @@ class DriveCommands:
                 raise DriveFailed(f'node {drive.node_id}: {drive.unwatched}; enable refused, '
                                   f'nothing was sent to the controlword (or give that up: '
                                   f'drives.keep_running_if_gateway_dies)')
-        await drive.objects.mapping_known(MAPPING_WAIT)
+        await self._mapping_known(drive)
         self._service.set_enabled(drive, False)
         if self._service.status(drive.node_id).state != cia402.OPERATION_ENABLED:
             drive.pp_goal = None  # enabled afresh, a drive takes where it stands as its base
