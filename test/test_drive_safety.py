@@ -30,6 +30,7 @@ from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.ros.node import SHUTDOWN_LIMIT
 from cbcan_ros.simulation.durand.drive import DurandDrive
+from cbcan_ros.simulation.durand.drive_objects import QUICK_STOP_OPTION
 from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
 from cbcan_ros.simulation.durand.drive_pdos import drive_pdos as layout_pdos
 from cbcan_ros.simulation.durand.scheduler import shared_scheduler
@@ -629,6 +630,35 @@ def test_the_drive_watches_the_gateway_and_stops_by_itself_when_it_is_killed(rig
         raise AssertionError(f'{error}; heartbeats of node {OWN_ID} after the kill: '
                              f'{len(heard)}; durand timers pending: '
                              f'{shared_scheduler().pending()}') from None
+
+
+def test_a_gateway_held_up_longer_than_the_drive_watches_it_does_not_run_it_again(rig):
+    # Red team: a drive that stays in QUICK_STOP_ACTIVE (0x605A = 6, where enable operation
+    # is transition 16) stopped by itself while the gateway was frozen for 1.5 s, and ran
+    # again within 10 ms of the gateway going on: a message's frames from before the freeze,
+    # the command timeout's halt (0x010F) and the targets queued meanwhile all carried
+    # enable operation.
+    axis = rig('-p', f'heartbeat.node_id:={OWN_ID}', '-p', 'heartbeat.period:=0.2',
+               '-p', 'drives.consumer_time:=1.0', '-p', 'drives.command_timeout:=0.5')
+    axis.drive.set_value(QUICK_STOP_OPTION, 0, struct.pack('<h', 6))
+    axis.enable_moving()
+    frozen, shown_before = axis.recorder.mark(), len(axis.states)
+    axis.node.process.send_signal(signal.SIGSTOP)
+    try:
+        axis.drive_reaches(lambda drive: drive.drive_state == 'QUICK_STOP_ACTIVE',
+                           'the drive stopped by itself')
+    finally:
+        axis.node.process.send_signal(signal.SIGCONT)
+    # The targets kept coming all the while: refused once the drive is seen stopped.
+    axis.target_refused(f'node {NODE} is QUICK_STOP_ACTIVE and needs a fresh enable')
+    axis.recorder.mark()
+    enabling = [m for m in axis.recorder.messages(frozen) if controlword_of(m) is not None
+                and controlword_of(m) & 0x8F == 0x0F]  # enable operation, halted or not
+    assert not enabling, f'frames that enable after the stall: {shown(enabling)}'
+    assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE'
+    # Read afresh: UNKNOWN until then, and said so.
+    axis.wait_state('UNKNOWN', shown_before)
+    assert 'silent for' in axis.node.output()
 
 
 # 4. The drive's heartbeat lost.

@@ -200,6 +200,13 @@ class Gateway:
                                    self.heartbeat.beat_now, self._end_drive_transfers)
         self.emcy.add_listener(lambda emergency: self.drives.on_emcy(
             emergency.node_id, emergency.error_code))
+        if self.heartbeat.producing and config.drives.consumer_time:
+            # Drives watch the gateway's heartbeat: held up longer than they watch it, the
+            # gateway finds them stopped by themselves, and sends nothing that enables.
+            self.heartbeat.watch_silence(config.drives.consumer_time,
+                                         self.drives.after_gateway_silence)
+            self.pdo.hold_frames_while(self._silent_too_long)
+            self.drives.hold_back_while(self._silent_too_long)
         self._deadlines = Deadlines()
         self.boot = BootService(self.network, boots, self.sdo_batch, self._send_nmt,
                                 self.pdo, self.monitor, self._deadlines, config.sdo_timeout,
@@ -235,6 +242,13 @@ class Gateway:
         self._closing = False
         self._stopping_drives = False
         self.bus.add_listener(self._on_bus_change)
+
+    def _silent_too_long(self) -> Optional[str]:
+        """Return why nothing but a stop goes out now: the heartbeat silent too long."""
+        silent = self.heartbeat.silent_too_long()
+        return None if silent is None else (
+            f'the heartbeat of the gateway has been silent for {silent:.2f} s, longer than '
+            f'the drives watch it: they stopped by themselves, and are read afresh')
 
     @property
     def bus_status(self) -> BusStatus:

@@ -24,7 +24,7 @@ import logging
 import math
 import threading
 import time
-from typing import Callable
+from typing import Callable, Optional
 
 import can
 
@@ -79,6 +79,10 @@ class HeartbeatProducer:
         self._closing = False
         self._sent = 0
         self._failed = 0
+        self._last_sent = None  # clock() of the last beat that went out
+        self._silence_limit = math.inf
+        self._silence_told = False  # on_silence was called for the silence going on
+        self._on_silence: Callable[[float], None] = lambda _seconds: None
         self._thread = threading.Thread(target=self._run, name='heartbeat-producer',
                                         daemon=True)
 
@@ -101,6 +105,25 @@ class HeartbeatProducer:
         with self._lock:
             self._extra = True
             self._lock.notify_all()
+
+    def watch_silence(self, limit: float, on_silence: Callable[[float], None]) -> None:
+        """Have ``on_silence(seconds)`` called when a beat goes out after more than ``limit``.
+
+        ``limit``: the consumer time of the devices that watch this heartbeat. A gateway held
+        up that long (its machine starved, the bus down) finds those devices stopped by
+        themselves: called before that beat goes out, while :meth:`silent_too_long` still
+        says so, so no thread of the gateway can send anything meanwhile unchecked.
+        """
+        with self._lock:
+            self._silence_limit, self._on_silence = limit, on_silence
+
+    def silent_too_long(self) -> Optional[float]:
+        """Return how long no beat went out, when longer than the limit watched; else None."""
+        last = self._last_sent  # a float read whole: no lock, asked for every frame
+        if last is None:
+            return None
+        silent = self._clock() - last
+        return silent if silent > self._silence_limit else None
 
     def start(self) -> None:
         """Start beating at once, if a node id is configured."""
@@ -137,11 +160,17 @@ class HeartbeatProducer:
                     continue
                 message = can.Message(arbitration_id=HEARTBEAT_COB_BASE + self.node_id,
                                       data=bytes([self._state]), is_extended_id=False)
+                silent = None if self._silence_told else self.silent_too_long()
+                self._silence_told |= silent is not None  # once a silence (the bus down)
+                on_silence = self._on_silence
                 # Sent unlocked, so stop() is never held up by a slow adapter; it joins this
                 # thread, so nothing is sent after it returns.
                 self._lock.release()
                 try:
+                    if silent is not None:
+                        on_silence(silent)
                     self._supervisor.send(message)
+                    self._last_sent, self._silence_told = self._clock(), False
                     sent = True
                 except BusDown:  # the supervisor reports the bus down, and reopens it
                     sent = False

@@ -167,11 +167,17 @@ def state_of(statusword: int) -> str:
 
 
 def stops(controlword: int) -> bool:
-    """Return whether ``controlword`` stops the axis: the halt bit, quick stop or disable voltage.
+    """Return whether ``controlword`` stops the axis: halt, quick stop or disable voltage."""
+    return bool(controlword & HALT) or switches_off(controlword)
 
-    Quick stop and disable voltage are the commands with bit 1 or bit 2 clear (CiA 402).
+
+def switches_off(controlword: int) -> bool:
+    """Return whether ``controlword`` is quick stop or disable voltage: it enables nothing.
+
+    The commands with bit 1 or bit 2 clear (CiA 402). A halt (bit 8) with enable operation
+    still enables: a drive in QUICK_STOP_ACTIVE takes it as transition 16.
     """
-    return bool(controlword & HALT) or controlword & 0x06 != 0x06
+    return controlword & 0x06 != 0x06
 
 
 def error_meaning(code: int) -> str:

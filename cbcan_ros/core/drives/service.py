@@ -110,6 +110,7 @@ class DriveService:
         self._decoders: Dict[Tuple[int, int], tuple] = {}
         # Why a drive may not be enabled though it answers (its boot failed), or None.
         self.boot_refusal: Callable[[int], Optional[str]] = lambda node_id: None
+        self._held_back: Callable[[], Optional[str]] = lambda: None
         self._runner = CoroutineRunner('drives')
         self._commands = DriveCommands(self)
         self._closing = False
@@ -146,6 +147,38 @@ class DriveService:
         """Return what is known of drive ``node_id`` now: UNKNOWN until it is re-read."""
         with self._lock:
             return shown(self._drives[node_id])
+
+    def hold_back_while(self, why: Callable[[], Optional[str]]) -> None:
+        """Send the drives nothing that could enable them while ``why()`` says why not."""
+        self._held_back = why
+
+    def after_gateway_silence(self, seconds: float) -> None:
+        """Read every drive afresh: the gateway's heartbeat was silent ``seconds``.
+
+        Longer than the drives' consumer time (the gateway held up, or the bus down): each
+        drive that watches it took its abort connection option (a quick stop) meanwhile, and
+        could take a frame of the gateway's from before, or a target sent before its stop
+        is seen, as an enable (transition 16 in QUICK_STOP_ACTIVE). So its frames are
+        voided and it is read afresh, UNKNOWN until then and in need of a fresh enable;
+        one found running is quick-stopped, as a drive heard again is.
+        """
+        LOGGER.warning('the heartbeat of the gateway was silent for %.2f s, longer than the '
+                       'drives watch it (drives.consumer_time %g s): they stopped by '
+                       'themselves; each is read afresh and needs a fresh enable', seconds,
+                       self.settings.consumer_time)
+        for drive in self._drives.values():
+            with self._lock:
+                if not drive.heard:
+                    continue
+                self._pdo.void_frames(drive.node_id)
+                drive.read_wanted += 1
+                request = drive.read_wanted
+                drive.halted_by = ''
+                drive.status = replace(drive.status, state=cia402.UNKNOWN, needs_enable=True,
+                                       halted=False)
+                self._tell(drive)
+            self._wake(drive)  # a command running ends (commands._until)
+            self._runner.submit(self._initial_read(drive, request))
 
     def refuse_enable_when(self, refusal: Callable[[int], Optional[str]]) -> None:
         """Have ``refusal(node_id)`` (why a drive may not be enabled, or None) asked first."""
@@ -337,10 +370,12 @@ class DriveService:
         if refused is not None:
             return refused
         drive = self._drives[node_id]
+        held = self._held_back()
         with drive.sending:
             with self._lock:
                 status = drive.status
                 problem = (f'{SHUTTING_DOWN}; {checks.NOTHING_SENT}' if self._closing
+                           else f'{held}; {checks.NOTHING_SENT}' if held
                            else checks.target_problem(status, drive.halted_by, value))
                 if problem:
                     return failed(status, problem)
@@ -387,13 +422,16 @@ class DriveService:
         (``safety.stopping_target``), which the frames of this write then repeat; decided
         with the halt under ``drive.sending``, so no target streamed meanwhile comes between.
         """
+        switching_off = (halt is None and cia402.CONTROLWORD in values
+                         and cia402.switches_off(values[cia402.CONTROLWORD]))
+        held = None if switching_off else self._held_back()
         with drive.sending:
             # Before the lock (the objects' own), as the command timeout's halt reads it.
             commanded = (drive.objects.value(cia402.TARGET_POSITION) if stopping is not None
                          else None)
             with self._lock:
                 status = shown(drive)
-                problem = (checks.lost_problem(drive, reads, status, self._bus_down())
+                problem = (held or checks.lost_problem(drive, reads, status, self._bus_down())
                            or (enabled and checks.state_problem(status, True, True)))
                 if problem:
                     return resolved(SdoResult.failed(problem))

@@ -134,6 +134,7 @@ class PdoService:
         self._repeated_at = 0.0
         # Within ``one_cycle``, this thread's stream frames built and not sent yet
         self._burst = threading.local()
+        self._held_back: Callable[[], Optional[str]] = lambda: None
         self._thread = threading.Thread(target=self._read_mappings, name='pdo-mappings',
                                         daemon=True)
 
@@ -611,7 +612,15 @@ class PdoService:
         return None
 
     def _send(self, mapping: PdoMapping, frame: bytes, stopping: bool = False) -> SdoResult:
-        """Send ``frame``; ``stopping``: a stop's frame, sent even once shutdown has begun."""
+        """Send ``frame``; ``stopping``: a stop's frame, sent even once shutdown has begun.
+
+        Nothing else while ``hold_frames_while`` says why not.
+        """
+        held = None if stopping else self._held_back()
+        if held:
+            with self._lock:
+                self._devices[mapping.node_id].refused += 1
+            return SdoResult.failed(f'{mapping.name} was not sent: {held}')
         with self._lock:
             if self._closing and not stopping:
                 return SdoResult.failed(f'{SHUTTING_DOWN}; nothing was sent')
@@ -663,16 +672,32 @@ class PdoService:
             device = self._devices[can_id - HEARTBEAT_COB_BASE]
             first = not device.heard
             device.heard = True
-            if boot:
-                device.last_sent.clear()  # its RPDOs hold nothing of before
-                device.on_bus.clear()
-                device.life += 1
-                self._follow_stream((device.node_id, 0), 0.0)
+            if boot:  # its RPDOs hold nothing of before
+                self._void_frames(device)
             retry = (device.done < 0 and
                      time.monotonic() - device.failed_at >= REREAD_INTERVAL)
             if (boot or first or retry) and not device.booted:
                 device.wanted += 1
                 self._lock.notify_all()
+
+    def void_frames(self, node_id: int) -> None:
+        """Send no frame of ``node_id`` built before now: its state is to be read afresh.
+
+        As a boot does: its streams end, and a frame waiting for a SYNC or a message's end
+        is answered, not sent.
+        """
+        with self._lock:
+            self._void_frames(self._devices[node_id])
+
+    def _void_frames(self, device: _Device) -> None:
+        device.last_sent.clear()
+        device.on_bus.clear()
+        device.life += 1
+        self._follow_stream((device.node_id, 0), 0.0)
+
+    def hold_frames_while(self, why: Callable[[], Optional[str]]) -> None:
+        """Send no frame but a stop while ``why()`` says why not (a str; None: send)."""
+        self._held_back = why
 
     def _read_mappings(self) -> None:
         while True:
