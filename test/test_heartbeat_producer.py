@@ -120,6 +120,33 @@ def test_the_producer_beats_its_state_pauses_while_the_bus_is_down_and_stops():
     assert bus.count() == sent, 'a beat after stop() returned'
 
 
+def test_a_silence_longer_than_the_watchers_is_told_once_before_the_next_beat():
+    # The drives watching the heartbeat stopped by themselves: the gateway must know before
+    # it sends anything after the silence, and see it as silent until it is told.
+    bus = FakeSupervisor()
+    producer = HeartbeatProducer(bus, 9, 0.02)
+    told = []
+
+    def on_silence(seconds: float) -> None:
+        told.append((seconds, bus.count(), producer.silent_too_long()))
+    producer.watch_silence(0.1, on_silence)
+    producer.start()
+    try:
+        wait_until(lambda: bus.count() >= 3, ANSWER, 'beats')
+        assert producer.silent_too_long() is None
+        bus.down = True  # no beat goes out: the watchers see silence
+        wait_until(lambda: producer.silent_too_long() is not None, ANSWER, 'a long silence')
+        sent = bus.count()
+        bus.down = False
+        wait_until(lambda: bus.count() > sent, ANSWER, 'beats again')
+        wait_until(lambda: bus.count() > sent + 3, ANSWER, 'more beats')
+    finally:
+        producer.stop()
+    assert len(told) == 1, told  # once a silence, however many beats failed in it
+    seconds, beats_before, still_silent = told[0]
+    assert seconds > 0.1 and beats_before == sent and still_silent is not None
+
+
 def test_beat_now_sends_a_beat_at_once_between_those_of_a_long_period():
     # A drive told to watch the gateway watches from the first beat it hears: one goes out
     # at once, not a period later (here a period no test outlasts).

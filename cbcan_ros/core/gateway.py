@@ -244,9 +244,12 @@ class Gateway:
         self.bus.add_listener(self._on_bus_change)
 
     def _silent_too_long(self) -> Optional[str]:
-        """Return why nothing but a stop goes out now: the heartbeat silent too long."""
+        """Return why nothing but a stop goes out now: the heartbeat silent too long.
+
+        Not while the bus is down: that is the cause a caller is told, and nothing goes out.
+        """
         silent = self.heartbeat.silent_too_long()
-        return None if silent is None else (
+        return None if silent is None or self.bus.down_reason is not None else (
             f'the heartbeat of the gateway has been silent for {silent:.2f} s, longer than '
             f'the drives watch it: they stopped by themselves, and are read afresh')
 

@@ -107,12 +107,13 @@ class HeartbeatProducer:
             self._lock.notify_all()
 
     def watch_silence(self, limit: float, on_silence: Callable[[float], None]) -> None:
-        """Have ``on_silence(seconds)`` called when a beat goes out after more than ``limit``.
+        """Have ``on_silence(seconds)`` called when a beat is due after more than ``limit``.
 
         ``limit``: the consumer time of the devices that watch this heartbeat. A gateway held
         up that long (its machine starved, the bus down) finds those devices stopped by
-        themselves: called before that beat goes out, while :meth:`silent_too_long` still
-        says so, so no thread of the gateway can send anything meanwhile unchecked.
+        themselves: called once a silence, before that beat is sent, while
+        :meth:`silent_too_long` still says so, so no thread of the gateway can send anything
+        meanwhile unchecked.
         """
         with self._lock:
             self._silence_limit, self._on_silence = limit, on_silence

@@ -431,7 +431,7 @@ class DriveService:
                          else None)
             with self._lock:
                 status = shown(drive)
-                problem = (held or checks.lost_problem(drive, reads, status, self._bus_down())
+                problem = (checks.lost_problem(drive, reads, status, self._bus_down()) or held
                            or (enabled and checks.state_problem(status, True, True)))
                 if problem:
                     return resolved(SdoResult.failed(problem))
