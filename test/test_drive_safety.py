@@ -26,6 +26,7 @@ from lifecycle_msgs.srv import ChangeState
 import pytest
 from std_msgs.msg import Float64
 
+from cbcan_ros.core.drives import cia402
 from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.ros.node import SHUTDOWN_LIMIT
@@ -51,7 +52,7 @@ from node_process import (
 )
 
 NODE = 7
-CSV = 9
+CSP, CSV = 8, 9
 VELOCITY = 1500  # counts/s: the target the drive moves at (joint scale 1)
 ANSWER = 15.0  # ceiling for what a quiet machine does within a fraction of a second
 COMMAND_TIMEOUT = 10.0  # the drive_command timeout the tests ask for: far above a transition
@@ -632,33 +633,57 @@ def test_the_drive_watches_the_gateway_and_stops_by_itself_when_it_is_killed(rig
                              f'{shared_scheduler().pending()}') from None
 
 
-def test_a_gateway_held_up_longer_than_the_drive_watches_it_does_not_run_it_again(rig):
+def statewords_since(axis, since: int) -> list:
+    """Return the states the drive's TPDO 1 statuswords showed since mark ``since``."""
+    return [cia402.state_of(struct.unpack_from('<H', bytes(m.data))[0])
+            for m in axis.recorder.messages(since) if m.arbitration_id == 0x180 + NODE]
+
+
+@pytest.mark.parametrize('rpdos', ['event-driven', 'synchronous'])
+def test_a_gateway_held_up_longer_than_the_drive_watches_it_does_not_run_it_again(rig, rpdos):
     # Red team: a drive that stays in QUICK_STOP_ACTIVE (0x605A = 6, where enable operation
     # is transition 16) stopped by itself while the gateway was frozen for 1.5 s, and ran
     # again within 10 ms of the gateway going on: a message's frames from before the freeze,
-    # the command timeout's halt (0x010F) and the targets queued meanwhile all carried
-    # enable operation.
+    # the command timeout's halt (0x010F), the targets queued meanwhile, and with
+    # synchronous RPDOs the frame the drive held for the first SYNC after it.
+    synchronous = rpdos == 'synchronous'
     axis = rig('-p', f'heartbeat.node_id:={OWN_ID}', '-p', 'heartbeat.period:=0.2',
-               '-p', 'drives.consumer_time:=1.0', '-p', 'drives.command_timeout:=0.5')
+               '-p', 'drives.consumer_time:=1.0', '-p', 'drives.command_timeout:=0.5',
+               *(('-p', 'sync.period:=0.05') if synchronous else ()),
+               pdos=default_drive_pdos(1 if synchronous else 0))
     axis.drive.set_value(QUICK_STOP_OPTION, 0, struct.pack('<h', 6))
-    axis.enable_moving()
-    frozen, shown_before = axis.recorder.mark(), len(axis.states)
+    if synchronous:  # CSP: each target's frame (RPDO 1) carries the controlword
+        axis.wait_state('SWITCH_ON_DISABLED')
+        axis.nmt_start()
+        enabled = axis.command('enable', CSP)
+        assert enabled.success, enabled.message
+        axis.stream(axis.drive.position)
+        axis.recorder.first(lambda m: m.arbitration_id == RPDO1, 'targets in RPDO 1',
+                            axis.recorder.mark())
+        # Frozen right after a frame, which the drive holds for the SYNC 50 ms later.
+        axis.recorder.first(lambda m: m.arbitration_id == RPDO1, 'a target in RPDO 1',
+                            axis.recorder.mark())
+    else:
+        axis.enable_moving()
+    frozen = axis.recorder.mark()
     axis.node.process.send_signal(signal.SIGSTOP)
     try:
         axis.drive_reaches(lambda drive: drive.drive_state == 'QUICK_STOP_ACTIVE',
                            'the drive stopped by itself')
     finally:
+        resumed = axis.recorder.mark()
         axis.node.process.send_signal(signal.SIGCONT)
-    # The targets kept coming all the while: refused once the drive is seen stopped.
-    axis.target_refused(f'node {NODE} is QUICK_STOP_ACTIVE and needs a fresh enable')
+    # The targets kept coming all the while: refused once the drive needs a fresh enable.
+    wait_until(lambda: 'and needs a fresh enable' in axis.node.output(), ANSWER,
+               f'a target refused, in the log:\n{axis.node.output()[-3000:]}')
     axis.recorder.mark()
     enabling = [m for m in axis.recorder.messages(frozen) if controlword_of(m) is not None
                 and controlword_of(m) & 0x8F == 0x0F]  # enable operation, halted or not
     assert not enabling, f'frames that enable after the stall: {shown(enabling)}'
+    states = statewords_since(axis, resumed)
+    assert 'OPERATION_ENABLED' not in states, f'the drive ran again: {states}'
     assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE'
-    # Read afresh: UNKNOWN until then, and said so.
-    axis.wait_state('UNKNOWN', shown_before)
-    assert 'silent for' in axis.node.output()
+    assert axis.node.output().count('was silent for') == 1, axis.node.output()[-3000:]
 
 
 # 4. The drive's heartbeat lost.

@@ -43,7 +43,7 @@ from .sdo.request_queue import answer, Deadlines, resolved
 from .sdo.requests import Access, batch_refusal, check_node_id, one_each, refusal, SdoResult
 from .sdo.transfer import run_local
 from .sdo.write_protection import WriteProtection
-from .text import SHUTTING_DOWN
+from .text import HEARTBEAT_SILENT, SHUTTING_DOWN
 
 LOGGER = logging.getLogger(__name__)
 
@@ -207,6 +207,7 @@ class Gateway:
                                          self.drives.after_gateway_silence)
             self.pdo.hold_frames_while(self._silent_too_long)
             self.drives.hold_back_while(self._silent_too_long)
+            self.sync.hold_while(self._silent_too_long)
         self._deadlines = Deadlines()
         self.boot = BootService(self.network, boots, self.sdo_batch, self._send_nmt,
                                 self.pdo, self.monitor, self._deadlines, config.sdo_timeout,
@@ -250,8 +251,8 @@ class Gateway:
         """
         silent = self.heartbeat.silent_too_long()
         return None if silent is None or self.bus.down_reason is not None else (
-            f'the heartbeat of the gateway has been silent for {silent:.2f} s, longer than '
-            f'the drives watch it: they stopped by themselves, and are read afresh')
+            f'{HEARTBEAT_SILENT} for {silent:.2f} s, longer than the drives watch it: they '
+            f'stopped by themselves, and are quick-stopped as it goes on')
 
     @property
     def bus_status(self) -> BusStatus:

@@ -3,6 +3,9 @@
 # Why a request was refused or not finished: the gateway is stopping (every service says so
 # alike, so a caller can tell it from a fault).
 SHUTTING_DOWN = 'the gateway is shutting down'
+# Why nothing but a stop goes out now: the gateway was held up longer than its drives watch
+# its heartbeat (said once, when it goes on; a refusal of it is no drive's fault).
+HEARTBEAT_SILENT = 'the heartbeat of the gateway has been silent'
 
 
 def quoted(value, limit: int = 32) -> str:

@@ -37,6 +37,7 @@ from ..core.drives import cia402
 from ..core.drives.checks import SHUTTING_DOWN, target_value_problem
 from ..core.drives.service import DriveService
 from ..core.drives.status import DriveResult, DriveStatus, failed
+from ..core.text import HEARTBEAT_SILENT
 from ..core.values import int_given_as_float
 from ..msg import DriveState
 from .drive_parameters import Joint
@@ -337,10 +338,10 @@ class DriveTopics:
         mode = self._service.status(joint.node_id).mode
         result = self._service.target(joint.node_id, joint.to_device(mode, value))
         if not result.success:
-            # Shutting down concerns no drive: one line, not one a drive.
+            # Shutting down, or held up too long, concerns no drive: one line, not one a drive.
+            gateway_wide = SHUTTING_DOWN in result.message or HEARTBEAT_SILENT in result.message
             self._log_refusal(f'{topic}: {result.message}',
-                              GATEWAY_WIDE if SHUTTING_DOWN in result.message
-                              else joint.node_id)
+                              GATEWAY_WIDE if gateway_wide else joint.node_id)
             return False
         for incident in (joint.node_id, GATEWAY_WIDE):  # over: the next one is logged
             self._logged.pop(incident, None)

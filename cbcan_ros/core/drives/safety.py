@@ -14,6 +14,7 @@
 """
 
 import asyncio
+from concurrent.futures import Future
 from dataclasses import replace
 import logging
 import struct
@@ -68,7 +69,35 @@ def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
     word = ON_SHUTDOWN[settings.on_shutdown]
     if word is None:
         return []
-    sent, stopped = [], []
+    sent = send_stops(records, word, lock)
+    deadline = time.monotonic() + SHUTDOWN_WAIT
+    failed = []
+    for drive, _, future in sent:
+        try:
+            result = future.result(max(0.0, deadline - time.monotonic()))
+        except TimeoutError:
+            failed.append(f'{drive.node_id} (no answer)')
+            continue
+        if not result.success:
+            failed.append(f'{drive.node_id} ({result.message})')
+    if sent:
+        LOGGER.info('%s: %s sent to drives %s%s', reason, settings.on_shutdown,
+                    ', '.join(str(drive.node_id) for drive, *_ in sent),
+                    f'; not taken by {", ".join(failed)}' if failed else '')
+    return [(drive, updates) for drive, updates, _ in sent]
+
+
+def send_stops(records: Iterable[DriveRecord], word: int, lock,
+               tell: Callable[[DriveRecord], None] = lambda drive: None
+               ) -> List[Tuple[DriveRecord, int, 'Future[SdoResult]']]:
+    """Send the stop ``word`` to every powered drive, without waiting for the answers.
+
+    By SDO, and at once in every RPDO frame that maps the controlword (``write_by_sdo``), so
+    a frame a drive holds for the next SYNC carries the stop too. Returns each drive sent it,
+    with the statuswords it had taken before, and the SDO write's answer; tells each
+    (``tell``, with the lock held).
+    """
+    sent = []
     for drive in records:
         with drive.sending:  # after a target or halt being sent, before any later one
             with lock:
@@ -78,24 +107,11 @@ def stop_motion(records: Iterable[DriveRecord], settings: DriveSettings, lock,
                 # The stop's controlword has no halt bit: shown halted, the drive would say so.
                 drive.halted_by = ''
                 drive.status = replace(drive.status, needs_enable=True, halted=False)
-                stopped.append((drive, drive.updates))
-            sent.append((drive.node_id, drive.objects.write_by_sdo(
+                updates = drive.updates
+                tell(drive)
+            sent.append((drive, updates, drive.objects.write_by_sdo(
                 {cia402.CONTROLWORD: word}, SHUTDOWN_WAIT)))
-    deadline = time.monotonic() + SHUTDOWN_WAIT
-    failed = []
-    for node_id, future in sent:
-        try:
-            result = future.result(max(0.0, deadline - time.monotonic()))
-        except TimeoutError:
-            failed.append(f'{node_id} (no answer)')
-            continue
-        if not result.success:
-            failed.append(f'{node_id} ({result.message})')
-    if sent:
-        LOGGER.info('%s: %s sent to drives %s%s', reason, settings.on_shutdown,
-                    ', '.join(str(node_id) for node_id, _ in sent),
-                    f'; not taken by {", ".join(failed)}' if failed else '')
-    return stopped
+    return sent
 
 
 async def stop_unattended(drive: DriveRecord, lock, why: str) -> bool:
@@ -207,7 +223,8 @@ def halt_if_timed_out(drive: DriveRecord, settings: DriveSettings, lock,
                       closing: Callable[[], bool], tell: Callable[[DriveRecord], None]) -> bool:
     """Halt ``drive`` if it has waited too long for a target; return whether it did.
 
-    Not once the gateway is ``closing()``: its shutdown stop must be the last word. A halt
+    Not once ``closing()``: the gateway's shutdown stop must be the last word, and while
+    the gateway's heartbeat is silent too long its quick stop after the silence is. A halt
     that could not be sent is taken back (``_halt_answered``, which ``tell``s it with the
     lock held), so the next tick tries again.
     """

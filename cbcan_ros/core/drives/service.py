@@ -35,6 +35,7 @@ from ..nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED
 from ..pdo.mapping import ReceivedPdo
 from ..sdo.request_queue import answer, resolved
 from ..sdo.requests import SdoResult
+from ..text import HEARTBEAT_SILENT
 from . import checks as checks
 from . import cia402
 from . import safety as safety
@@ -153,32 +154,27 @@ class DriveService:
         self._held_back = why
 
     def after_gateway_silence(self, seconds: float) -> None:
-        """Read every drive afresh: the gateway's heartbeat was silent ``seconds``.
+        """Quick-stop every drive: the gateway's heartbeat was silent ``seconds``.
 
         Longer than the drives' consumer time (the gateway held up, or the bus down): each
-        drive that watches it took its abort connection option (a quick stop) meanwhile, and
-        could take a frame of the gateway's from before, or a target sent before its stop
-        is seen, as an enable (transition 16 in QUICK_STOP_ACTIVE). So its frames are
-        voided and it is read afresh, UNKNOWN until then and in need of a fresh enable;
-        one found running is quick-stopped, as a drive heard again is.
+        drive that watches it took its abort connection option (a quick stop) meanwhile. One
+        that stays in QUICK_STOP_ACTIVE would take a frame of the gateway's carrying enable
+        operation as transition 16 and run again: the frame it holds for the next SYNC (the
+        gateway's SYNC waits for this), one built before the silence, a target queued
+        meanwhile. The quick stop goes into every RPDO frame that maps the controlword at
+        once, and by SDO; a fresh enable is needed. Called before the gateway's next beat,
+        while nothing else may go out (``hold_back_while``).
         """
         LOGGER.warning('the heartbeat of the gateway was silent for %.2f s, longer than the '
                        'drives watch it (drives.consumer_time %g s): they stopped by '
-                       'themselves; each is read afresh and needs a fresh enable', seconds,
+                       'themselves; each is quick-stopped and needs a fresh enable', seconds,
                        self.settings.consumer_time)
-        for drive in self._drives.values():
-            with self._lock:
-                if not drive.heard:
-                    continue
-                self._pdo.void_frames(drive.node_id)
-                drive.read_wanted += 1
-                request = drive.read_wanted
-                drive.halted_by = ''
-                drive.status = replace(drive.status, state=cia402.UNKNOWN, needs_enable=True,
-                                       halted=False)
-                self._tell(drive)
-            self._wake(drive)  # a command running ends (commands._until)
-            self._runner.submit(self._initial_read(drive, request))
+        for drive, _, sent in safety.send_stops(self._drives.values(), cia402.QUICK_STOP,
+                                                self._lock, self._tell):
+            sent.add_done_callback(lambda done, drive=drive: done.result().success or (
+                LOGGER.error('drive %d: the quick stop after the silence was not taken: %s',
+                             drive.node_id, done.result().message)))
+            self._wake(drive)  # a command under way ends: the drive needs a fresh enable
 
     def refuse_enable_when(self, refusal: Callable[[int], Optional[str]]) -> None:
         """Have ``refusal(node_id)`` (why a drive may not be enabled, or None) asked first."""
@@ -772,7 +768,8 @@ class DriveService:
                 if not self._closing:
                     poll(drive, self._lock, self.read_feedback)
                 if safety.halt_if_timed_out(drive, self.settings, self._lock,
-                                            lambda: self._closing, self._tell):
+                                            lambda: self._closing or bool(self._held_back()),
+                                            self._tell):
                     with self._lock:
                         self._tell(drive)
 
@@ -822,9 +819,11 @@ class DriveService:
         a newer target replaced in the queue was not lost.
         """
         result = done.result()
-        # Neither a target a newer one replaced nor one the shutdown kept back was lost.
+        # Neither a target a newer one replaced nor one the shutdown or the gateway's silence
+        # kept back (each said once) was lost.
         failed = (not result.success and REPLACED not in result.message
-                  and SHUTTING_DOWN not in result.message)
+                  and SHUTTING_DOWN not in result.message
+                  and HEARTBEAT_SILENT not in result.message)
         now = time.monotonic()
         with self._lock:
             first = failed and node_id not in self._targets_failing

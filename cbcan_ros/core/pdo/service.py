@@ -672,28 +672,16 @@ class PdoService:
             device = self._devices[can_id - HEARTBEAT_COB_BASE]
             first = not device.heard
             device.heard = True
-            if boot:  # its RPDOs hold nothing of before
-                self._void_frames(device)
+            if boot:
+                device.last_sent.clear()  # its RPDOs hold nothing of before
+                device.on_bus.clear()
+                device.life += 1
+                self._follow_stream((device.node_id, 0), 0.0)
             retry = (device.done < 0 and
                      time.monotonic() - device.failed_at >= REREAD_INTERVAL)
             if (boot or first or retry) and not device.booted:
                 device.wanted += 1
                 self._lock.notify_all()
-
-    def void_frames(self, node_id: int) -> None:
-        """Send no frame of ``node_id`` built before now: its state is to be read afresh.
-
-        As a boot does: its streams end, and a frame waiting for a SYNC or a message's end
-        is answered, not sent.
-        """
-        with self._lock:
-            self._void_frames(self._devices[node_id])
-
-    def _void_frames(self, device: _Device) -> None:
-        device.last_sent.clear()
-        device.on_bus.clear()
-        device.life += 1
-        self._follow_stream((device.node_id, 0), 0.0)
 
     def hold_frames_while(self, why: Callable[[], Optional[str]]) -> None:
         """Send no frame but a stop while ``why()`` says why not (a str; None: send)."""

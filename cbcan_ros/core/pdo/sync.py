@@ -116,6 +116,7 @@ class SyncProducer:
         # Held while frames that must reach the devices between the same two SYNCs go out
         # (``between_two_syncs``); taken before any other lock of this producer.
         self._burst = threading.Lock()
+        self._held_back: Callable[[], Optional[str]] = lambda: None
         self._task = None
         self._task_start = 0.0
         self._grid_start = 0.0
@@ -177,6 +178,14 @@ class SyncProducer:
             self._before_sync.append(callback)
             self._lock.notify_all()
             return True
+
+    def hold_while(self, why: Callable[[], Optional[str]]) -> None:
+        """Send no SYNC (this thread's) while ``why()`` says why not: those cycles are skipped.
+
+        A SYNC applies the synchronous RPDO frames the devices hold: after the gateway was
+        held up, the ones from before it, until the gateway has sent what replaces them.
+        """
+        self._held_back = why
 
     def between_two_syncs(self) -> threading.Lock:
         """Return a lock whose holder's frames no SYNC of this thread splits.
@@ -390,7 +399,7 @@ class SyncProducer:
         with self._burst, self._sending:  # where the grid is once frames held apart are out
             cycles = (time.monotonic() - self._grid_start) / self.period
             cycle = math.floor(cycles)
-            send = cycles - cycle <= 0.5
+            send = cycles - cycle <= 0.5 and not self._held_back()
             if send and self._task is task:  # not when the bus went down or shutdown began
                 try:
                     self._supervisor.send(task.frames[task.count % len(task.frames)])
