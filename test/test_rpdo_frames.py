@@ -78,12 +78,14 @@ class _Network:
         self.frames.append((cob_id, bytes(data)))
 
 
-def service_with_a_synchronous_rpdo():
-    """Return (service, network, sync): RPDO 1 of NODE maps the controlword and a target."""
-    network, sync = _Network(), _Sync()
-    service = PdoService(network, [NODE], None, WriteProtection(), sync, {})
-    service._devices[NODE].rpdos = {1: parse_mapping(  # as a mapping read installs it
-        NODE, 'rpdo', 1, COB_ID, 1, 0, [CONTROLWORD << 16 | 0x10, TARGET << 16 | 0x20])}
+def service_with_a_synchronous_rpdo(node_ids=(NODE,), sync=None):
+    """Return (service, network, sync): RPDO 1 of each node maps the controlword and a target."""
+    network, sync = _Network(), sync or _Sync()
+    service = PdoService(network, list(node_ids), None, WriteProtection(), sync, {})
+    for node_id in node_ids:
+        service._devices[node_id].rpdos = {1: parse_mapping(  # as a mapping read installs it
+            node_id, 'rpdo', 1, 0x200 + node_id, 1, 0,
+            [CONTROLWORD << 16 | 0x10, TARGET << 16 | 0x20])}
     return service, network, sync
 
 
@@ -226,10 +228,7 @@ class _CycleSync(_Sync):
 
 
 def streaming_service():
-    service, network, _ = service_with_a_synchronous_rpdo()
-    sync = _CycleSync()
-    service._sync = sync
-    return service, network, sync
+    return service_with_a_synchronous_rpdo(sync=_CycleSync())
 
 
 def test_a_target_of_a_stream_goes_out_at_once_when_it_is_in_before_the_next_sync():
@@ -339,13 +338,7 @@ def test_a_stop_or_boot_while_a_message_is_written_keeps_its_frames_off_the_bus(
 
 def two_streaming_drives():
     """Return (service, network, sync) of NODE and NODE + 1, each with RPDO 1 as NODE's."""
-    network, sync = _Network(), _CycleSync()
-    service = PdoService(network, [NODE, NODE + 1], None, WriteProtection(), sync, {})
-    for node_id in (NODE, NODE + 1):
-        service._devices[node_id].rpdos = {1: parse_mapping(
-            node_id, 'rpdo', 1, 0x200 + node_id, 1, 0,
-            [CONTROLWORD << 16 | 0x10, TARGET << 16 | 0x20])}
-    return service, network, sync
+    return service_with_a_synchronous_rpdo((NODE, NODE + 1), _CycleSync())
 
 
 def message(service, target: int):

@@ -34,10 +34,10 @@ from std_msgs.msg import Float64
 
 from ..action import DriveMove
 from ..core.drives import cia402
-from ..core.drives.checks import SHUTTING_DOWN, target_value_problem
+from ..core.drives.checks import target_value_problem
 from ..core.drives.service import DriveService
 from ..core.drives.status import DriveResult, DriveStatus, failed
-from ..core.text import HEARTBEAT_SILENT
+from ..core.text import HEARTBEAT_SILENT, SHUTTING_DOWN
 from ..core.values import int_given_as_float
 from ..msg import DriveState
 from .drive_parameters import Joint

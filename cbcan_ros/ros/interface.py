@@ -26,11 +26,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ..core.coroutine_runner import CoroutineRunner
-from ..core.gateway import Gateway, SHUTTING_DOWN
+from ..core.gateway import Gateway
 from ..core.lss.requests import Identity, LssResult
 from ..core.nmt import state_name
 from ..core.sdo.request_queue import resolved
 from ..core.sdo.requests import Access, check_node_id, SdoResult
+from ..core.text import SHUTTING_DOWN
 from ..msg import LssIdentity, NodeState, NodeStates
 from ..msg import SdoResult as SdoResultMessage
 from ..plc.mailbox import Mailbox

@@ -13,6 +13,7 @@ import contextlib
 import contextvars
 from typing import Callable, Dict, Optional, Tuple
 
+from ..text import SHUTTING_DOWN
 from . import cia402
 from .arrival import (
     HOME_HERE,
@@ -22,7 +23,7 @@ from .arrival import (
     position_window,
     software_limits,
 )
-from .checks import ENABLED_COMMANDS, lost_problem, SHUTTING_DOWN, state_problem
+from .checks import ENABLED_COMMANDS, lost_problem, state_problem
 from .standstill import until_applied_at_sync, wait_for_standstill
 from .status import DriveResult
 

@@ -33,16 +33,16 @@ from ..bus import prompt
 from ..coroutine_runner import CoroutineRunner
 from ..nmt import BOOT_UP, HEARTBEAT_COB_BASE, NOT_DETECTED
 from ..pdo.mapping import ReceivedPdo
+from ..pdo.service import REPLACED
 from ..sdo.request_queue import answer, resolved
 from ..sdo.requests import SdoResult
-from ..text import HEARTBEAT_SILENT
+from ..text import HEARTBEAT_SILENT, SHUTTING_DOWN
 from . import checks as checks
 from . import cia402
 from . import safety as safety
-from .checks import SHUTTING_DOWN
 from .commands import DriveCommands
 from .cycle import FeedbackCycle, poll
-from .objects import decode, DriveObjects, FEEDBACK, feedback_decoder, REPLACED
+from .objects import decode, DriveObjects, FEEDBACK, feedback_decoder
 from .status import DriveRecord, DriveResult, DriveSettings, DriveStatus, failed, shown, updated
 
 LOGGER = logging.getLogger(__name__)
@@ -169,11 +169,13 @@ class DriveService:
                        'drives watch it (drives.consumer_time %g s): they stopped by '
                        'themselves; each is quick-stopped and needs a fresh enable', seconds,
                        self.settings.consumer_time)
+        def taken(node_id: int, done: Future) -> None:
+            if not done.result().success:
+                LOGGER.error('drive %d: the quick stop after the silence was not taken: %s',
+                             node_id, done.result().message)
         for drive, _, sent in safety.send_stops(self._drives.values(), cia402.QUICK_STOP,
                                                 self._lock, self._tell):
-            sent.add_done_callback(lambda done, drive=drive: done.result().success or (
-                LOGGER.error('drive %d: the quick stop after the silence was not taken: %s',
-                             drive.node_id, done.result().message)))
+            sent.add_done_callback(lambda done, node_id=drive.node_id: taken(node_id, done))
             self._wake(drive)  # a command under way ends: the drive needs a fresh enable
 
     def refuse_enable_when(self, refusal: Callable[[int], Optional[str]]) -> None:

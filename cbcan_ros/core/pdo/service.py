@@ -297,7 +297,7 @@ class PdoService:
         mapping = checked
         key = (node_id, number)
         if mapping.synchronous and self._sync.producing:
-            if stream and (getattr(self._burst, 'frames', None) is not None
+            if stream and (self._message_frames() is not None
                            or self._sync.open_for_rpdos()):
                 return self._send_stream(mapping, values, data, stream)
             future: Future = Future()
@@ -332,7 +332,7 @@ class PdoService:
         too late for the next SYNC go together right after a SYNC: the next one, or at
         once when it went out while they were built (they are in time for the one after).
         """
-        if getattr(self._burst, 'frames', None) is not None:
+        if self._message_frames() is not None:
             yield  # within one already: its frames go with its own
             return
         frames: List[Tuple[PdoMapping, bytes, Future, int]] = []
@@ -350,6 +350,10 @@ class PdoService:
         finally:
             if frames and not opened:
                 self._send_after_sync(frames)
+
+    def _message_frames(self) -> Optional[List[Tuple[PdoMapping, bytes, Future, int]]]:
+        """Return the frames of this thread's ``one_cycle`` block, None outside one."""
+        return getattr(self._burst, 'frames', None)
 
     def _send_after_sync(self, burst: List[Tuple[PdoMapping, bytes, Future, int]]) -> None:
         """Send a message's frames that came too late for the SYNC, right after one."""
@@ -371,7 +375,7 @@ class PdoService:
                     return resolved(self._refused(mapping.node_id, frame))
                 self._follow_stream((mapping.node_id, mapping.number), seconds)
                 ended = self._devices[mapping.node_id].streams_ended
-            burst = getattr(self._burst, 'frames', None)
+            burst = self._message_frames()
             if burst is None:
                 return resolved(self._send(mapping, frame))
         future: Future = Future()
