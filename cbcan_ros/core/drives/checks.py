@@ -178,6 +178,10 @@ def target_problem(status: DriveStatus, halted_by: str, value: float) -> Optiona
     if halted_by == 'command':
         return (f'node {status.node_id} was halted by a halt command: call resume first; '
                 f'{NOTHING_SENT}')
+    if halted_by == 'mode change':
+        return (f'node {status.node_id} is halted for a mode change: targets are taken once '
+                f'the command that changes it has answered (if it failed, call resume); '
+                f'{NOTHING_SENT}')
     problem = target_value_problem(status.mode, value)
     return f'{problem}; {NOTHING_SENT}' if problem else None
 

@@ -298,21 +298,60 @@ class DriveCommands:
         return {index: value}
 
     async def _change_mode(self, drive, mode: int,
-                           hold: Optional[Dict[int, int]] = None) -> None:
+                           hold: Optional[Dict[int, int]] = None) -> Optional[Dict[int, int]]:
         """Hold the axis (``hold``, else ``mode``'s holding target), then change to ``mode``.
 
         The holding target goes in a write of its own before the mode: the drive must not
         take the old mode's target in the new one. Neither write may enable a drive that
-        stopped by itself meanwhile (``DriveService.keep_state``).
+        stopped by itself meanwhile (``DriveService.keep_state``). Without ``hold``, an axis
+        enabled in another mode is halted first (``_halt_for_mode``): then return the holding
+        target, for the caller to release the halt on it or start its motion; else None.
         """
         self._service.keep_state(drive)
-        hold = await self._hold(drive, mode) if hold is None else hold
+        halted_here = False
+        if hold is None:
+            halted_here = not self._shows_mode(drive, mode) and await self._halt_for_mode(drive)
+            hold = await self._hold(drive, mode)
         if hold:
             await self._send(drive, hold)
         if not self._shows_mode(drive, mode):
             drive.pp_goal = None  # the set-point of another mode is no base for a move
             await self._send(drive, {cia402.MODE: mode})
             await self._until(drive, lambda status: status.mode == mode)
+        return hold if halted_here else None
+
+    async def _halt_for_mode(self, drive) -> bool:
+        """Halt an enabled axis that is not halted, until it stands; return whether it was.
+
+        Before a mode change: the new mode's holding target is read once the axis stands. Read
+        while it moves, it is where the axis was some milliseconds before the change, and a
+        drive entering CSP would run back to it. A velocity that never reads exactly 0 (see
+        ``standstill``) is waited for as long as enable waits, then the axis is held there.
+        """
+        status = self._service.status(drive.node_id)
+        if status.state != cia402.OPERATION_ENABLED or drive.controlword & cia402.HALT:
+            return False
+        stopping: Dict[int, int] = {}
+        await self._send(drive, {}, halt='mode change', stopping=stopping)
+        if stopping:  # a write of its own, as ``_halt`` sends it
+            await self._send(drive, stopping)
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._standstill(drive), STANDSTILL_WAIT)
+        return True
+
+    async def _release_held(self, drive, mode: int, held: int) -> None:
+        """Release the halt of an axis held where it stands (at ``held`` in a position mode).
+
+        In profile position with a new set-point there: released alone, the drive would go
+        on to the set-point it was halted on its way to. In homing with the start bit down:
+        a halted homing does not start again.
+        """
+        if mode == cia402.PROFILE_POSITION:
+            await self._new_set_point(drive, held)
+            return
+        self._service.set_halted(drive, '')
+        await self._release(drive, {cia402.CONTROLWORD: drive.controlword & ~(
+            cia402.HALT | cia402.MODE_BITS)})
 
     async def _mapping_known(self, drive) -> None:
         """Wait for the drive's PDO mapping being read; that wait is not the command's time."""
@@ -355,13 +394,14 @@ class DriveCommands:
         self._service.set_enabled(drive, False)
         if self._service.status(drive.node_id).state != cia402.OPERATION_ENABLED:
             drive.pp_goal = None  # enabled afresh, a drive takes where it stands as its base
-        if (drive.controlword & cia402.HALT
+        mode = mode or self._service.status(drive.node_id).mode
+        halted_here = not self._shows_mode(drive, mode) and await self._halt_for_mode(drive)
+        if (not halted_here and drive.controlword & cia402.HALT
                 and self._service.status(drive.node_id).state == cia402.OPERATION_ENABLED):
             # Held where it stands, not where it slows. A velocity read may never be exactly
             # 0: waited for, then the axis is held where it is.
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._standstill(drive, False), STANDSTILL_WAIT)
-        mode = mode or self._service.status(drive.node_id).mode
         hold = await self._hold(drive, mode)
         held = hold.get(cia402.TARGET_POSITION, 0)
         if not self._shows_mode(drive, mode):
@@ -373,12 +413,7 @@ class DriveCommands:
         status = await self._reach(drive, cia402.OPERATION_ENABLED,
                                    lambda s: s.state == cia402.OPERATION_ENABLED, first=hold)
         if drive.controlword & cia402.HALT:  # already enabled, halted: released, held
-            if status.mode == cia402.PROFILE_POSITION:
-                # Released alone, it would go on to the set-point it was halted on its way to.
-                await self._new_set_point(drive, held)
-            else:  # bit 4 down too: a halted homing does not start again
-                await self._release(drive, {cia402.CONTROLWORD: drive.controlword & ~(
-                    cia402.HALT | cia402.MODE_BITS)})
+            await self._release_held(drive, status.mode, held)
             status = self._service.status(drive.node_id)
         self._service.set_enabled(drive, True)
         return f'node {drive.node_id} is OPERATION_ENABLED in {cia402.mode_name(status.mode)}'
@@ -476,7 +511,9 @@ class DriveCommands:
                 f'again')
 
     async def _set_mode(self, drive, mode: int) -> str:
-        await self._change_mode(drive, mode)
+        hold = await self._change_mode(drive, mode)
+        if hold is not None:
+            await self._release_held(drive, mode, hold.get(cia402.TARGET_POSITION, 0))
         return f'node {drive.node_id} is in {cia402.mode_name(mode)}'
 
     async def _home(self, drive, _mode: int) -> str:
