@@ -238,20 +238,24 @@ class DriveTopics:
         self._send_target(self._joints[node_id], message.data, topic)
 
     def _on_joint_commands(self, message: JointState) -> None:
+        refusal = self._refusal()
+        if refusal:
+            self._log_refusal(f'joint_commands: {refusal}', GATEWAY_WIDE)
+            return
         targets = self._targets_of(message)
         drives = sum(1 for name in message.name if name in self._by_name)
         taken = bool(targets) and len(targets) == drives
         # One message, one SYNC cycle: no drive takes its target a cycle after another.
         with self._service.one_cycle():
             for joint, value in targets:
-                taken = self._send_target(joint, value, 'joint_commands') and taken
+                taken = self._deliver(joint, value, 'joint_commands') and taken
         if taken:  # every drive named took its value: a problem of whole messages is over
             self._logged.pop(None, None)
             if drives == len(message.name):  # and no joint of other hardware is named
                 self._logged.pop(OTHER_HARDWARE, None)
 
     def _targets_of(self, message: JointState) -> List[Tuple[Joint, float]]:
-        """Return the (joint, value) pairs of a ``joint_commands`` message; log the rest.
+        """Return the (joint, value in drive units) of a ``joint_commands`` message; log the rest.
 
         ros2_control's topic-based hardware interface fills each array only for the joints
         that have that command interface: with mixed interfaces, a shorter array holds the
@@ -305,16 +309,19 @@ class DriveTopics:
                               f'for joints {", ".join(unclear)}; nothing was sent to them')
         mode_of = {joint.node_id: mode for joint, mode in zip(joints, modes, strict=True)
                    if joint}
+        in_drive_units = []
         for joint, value in targets:
             mode = mode_of[joint.node_id]
+            device = joint.to_device(mode, value)
             problem = (f'{value} is not a finite number' if not math.isfinite(value)
-                       else target_value_problem(mode, joint.to_device(mode, value)))
+                       else target_value_problem(mode, device))
             if problem:
                 self._log_refusal(f'joint_commands: joint {joint.name!r} (node '
                                   f'{joint.node_id}): {problem}; nothing of the message was '
                                   f'sent')
                 return []
-        return targets
+            in_drive_units.append((joint, device))
+        return in_drive_units
 
     def _takes_none(self, joint: Joint) -> str:
         """Return why a drive in no mode that takes a target takes none, for the log."""
@@ -326,7 +333,7 @@ class DriveTopics:
         return f'is in {cia402.mode_name(status.mode)}, which takes no target'
 
     def _send_target(self, joint: Joint, value: float, topic: str) -> bool:
-        """Send a target to the joint's drive; log why not (return whether it went)."""
+        """Send a target in joint units to the joint's drive; log why not (return if it went)."""
         refusal = self._refusal()
         if refusal:
             self._log_refusal(f'{topic}: {refusal}', GATEWAY_WIDE)
@@ -336,7 +343,11 @@ class DriveTopics:
                               f'finite number; nothing was sent', joint.node_id)
             return False
         mode = self._service.status(joint.node_id).mode
-        result = self._service.target(joint.node_id, joint.to_device(mode, value))
+        return self._deliver(joint, joint.to_device(mode, value), topic)
+
+    def _deliver(self, joint: Joint, value: float, topic: str) -> bool:
+        """Send a target in drive units to the joint's drive; log why not (return if it went)."""
+        result = self._service.target(joint.node_id, value)
         if not result.success:
             # Shutting down, or held up too long, concerns no drive: one line, not one a drive.
             gateway_wide = SHUTTING_DOWN in result.message or HEARTBEAT_SILENT in result.message
