@@ -97,6 +97,37 @@ class Rig:
         self.gateway.close()
 
 
+@contextlib.contextmanager
+def joints_enabled(start_durand, joints: dict):
+    """Yield (gateway, drives by node id, its ``joint_commands`` publisher): several joints.
+
+    ``joints``: node id: (joint name, mode), each a simulated drive enabled in its mode, at
+    SCALE in position and velocity; the command timeout off.
+    """
+    channel = new_channel()
+    drives = {node_id: start_durand(node_id, kind=DurandDrive, channel=channel,
+                                    pdos=default_drive_pdos()) for node_id in joints}
+    parameters = {'can.channel': channel, 'simulation.devices': None,
+                  'drives.nodes': list(joints), 'drives.command_timeout': 0.0,
+                  'drives.consumer_time': 3.0}
+    for node_id, (joint, _) in joints.items():
+        parameters.update({f'node_{node_id}.joint': joint,
+                           f'node_{node_id}.position_scale': SCALE,
+                           f'node_{node_id}.velocity_scale': SCALE})
+    gateway = Harness(parameters)
+    try:
+        commands = gateway.client_node.create_publisher(JointState, '/cbcan/joint_commands',
+                                                        10)
+        for node_id, (_, mode) in joints.items():
+            assert gateway.call('nmt_command', node_id=node_id, command=1).success
+            wait_until(lambda node_id=node_id, mode=mode: gateway.call(
+                'drive_command', node_id=node_id, command='enable', mode=mode).success,
+                WAIT, f'drive {node_id} enabled')
+        yield gateway, drives, commands
+    finally:
+        gateway.close()
+
+
 @pytest.fixture
 def rig(ros_context, start_durand):
     """Return ``rig(**parameters)``: a gateway with one simulated drive, closed after."""

@@ -14,15 +14,13 @@ from types import SimpleNamespace
 
 import pytest
 from sensor_msgs.msg import JointState
-from test_drives import CSV, SCALE, WAIT
+from test_drives import CSV, joints_enabled, SCALE, WAIT
 
 from cbcan_ros.core.drives.status import DriveResult, DriveStatus
 from cbcan_ros.ros.drive_parameters import Joint
 from cbcan_ros.ros.drives import DriveTopics
-from cbcan_ros.simulation.durand.drive import DurandDrive
-from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
 
-from conftest import Harness, new_channel, wait_until
+from conftest import wait_until
 
 JOINTS = {7: 'shoulder', 8: 'elbow'}
 
@@ -31,28 +29,9 @@ JOINTS = {7: 'shoulder', 8: 'elbow'}
 def arm(ros_context, start_durand, caplog):
     """Return (gateway, drives by node id, the joint_commands publisher), both drives in CSV."""
     caplog.set_level(logging.WARNING, logger='cbcan_ros.ros.drives')
-    channel = new_channel()
-    drives = {node_id: start_durand(node_id, kind=DurandDrive, channel=channel,
-                                    pdos=default_drive_pdos()) for node_id in JOINTS}
-    parameters = {'can.channel': channel, 'simulation.devices': None,
-                  'drives.nodes': list(JOINTS), 'drives.command_timeout': 0.0,
-                  'drives.consumer_time': 3.0}
-    for node_id, joint in JOINTS.items():
-        parameters.update({f'node_{node_id}.joint': joint,
-                           f'node_{node_id}.position_scale': SCALE,
-                           f'node_{node_id}.velocity_scale': SCALE})
-    gateway = Harness(parameters)
-    try:
-        commands = gateway.client_node.create_publisher(JointState, '/cbcan/joint_commands',
-                                                        10)
-        for node_id in JOINTS:
-            assert gateway.call('nmt_command', node_id=node_id, command=1).success
-            wait_until(lambda node_id=node_id: gateway.call(
-                'drive_command', node_id=node_id, command='enable', mode=CSV).success,
-                WAIT, f'drive {node_id} enabled')
-        yield gateway, drives, commands
-    finally:
-        gateway.close()
+    with joints_enabled(start_durand, {node_id: (joint, CSV)
+                                       for node_id, joint in JOINTS.items()}) as made:
+        yield made
 
 
 def lines(caplog, text: str) -> list:

@@ -16,12 +16,9 @@ import xml.etree.ElementTree as ElementTree
 import pytest
 from sensor_msgs.msg import JointState
 import test_drives
-from test_drives import CSP, CSV, JOINT, SCALE, WAIT
+from test_drives import CSP, CSV, JOINT, joints_enabled, WAIT
 
-from cbcan_ros.simulation.durand.drive import DurandDrive
-from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
-
-from conftest import Harness, new_channel, wait_until
+from conftest import wait_until
 from node_process import ROOT
 
 rig = test_drives.rig  # a gateway with one simulated drive (a fixture)
@@ -112,21 +109,8 @@ def test_mixed_interfaces_reach_each_drive_from_the_plugins_short_arrays(ros_con
                                                                          start_durand):
     # An arm joint in position and a wheel in velocity, both drives of one gateway: the
     # plugin fills velocity only for the wheel and position only for the arm.
-    channel = new_channel()
-    drives = {node_id: start_durand(node_id, kind=DurandDrive, channel=channel,
-                                    pdos=default_drive_pdos()) for node_id in (7, 8)}
-    gateway = Harness({'can.channel': channel, 'simulation.devices': None,
-                       'drives.nodes': [7, 8], 'node_7.joint': 'arm', 'node_8.joint': 'wheel',
-                       'node_7.position_scale': SCALE, 'node_8.velocity_scale': SCALE,
-                       'drives.command_timeout': 0.0, 'drives.consumer_time': 3.0})
-    try:
-        commands = gateway.client_node.create_publisher(JointState, '/cbcan/joint_commands',
-                                                        10)
-        for node_id, mode in ((7, CSP), (8, CSV)):
-            assert gateway.call('nmt_command', node_id=node_id, command=1).success
-            wait_until(lambda node_id=node_id, mode=mode: gateway.call(
-                'drive_command', node_id=node_id, command='enable', mode=mode).success,
-                WAIT, f'drive {node_id} enabled')
+    with joints_enabled(start_durand, {7: ('arm', CSP), 8: ('wheel', CSV)}) as (
+            _, drives, commands):
         system = documented_system({'arm': ['position'], 'wheel': ['velocity']})
         system.commands['position'][0] = 0.25
         system.commands['velocity'][1] = 0.5
@@ -137,5 +121,3 @@ def test_mixed_interfaces_reach_each_drive_from_the_plugins_short_arrays(ros_con
             commands.publish(message)
             return drives[7].position == 250 and drives[8].velocity == 500
         wait_until(followed, WAIT, 'the arm at 250 counts and the wheel at 500 counts/s')
-    finally:
-        gateway.close()
