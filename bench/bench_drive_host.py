@@ -31,7 +31,9 @@ up and then answers commands (one JSON object a line) on standard input until ``
 * ``enable-floor``: the least any ROS gateway does for an enable: ``--namespace``/
   drive_command (the gateway's ``DriveCommand`` type and service QoS), whose callback runs
   python canopen's ``BaseNode402`` (``enable``: OPERATION ENABLED, ``disable``: SWITCH ON
-  DISABLED) on the drive ``--nodes`` of the bus, blocking the executor meanwhile.
+  DISABLED) on the drive ``--nodes`` of the bus, blocking the executor meanwhile; and
+  ``drive_command_answered_later``, the same on a worker thread that answers when done, so
+  the executor stays free, as a gateway's must.
 """
 
 import argparse
@@ -496,11 +498,20 @@ def run_floor(args, bus_options: Dict) -> None:
 
 
 def run_enable_floor(args, bus_options: Dict) -> None:
-    """Serve ``--namespace``/drive_command with BaseNode402 inside the callback (module text)."""
+    """Serve ``--namespace``/drive_command with BaseNode402 inside the callback (module text).
+
+    And ``drive_command_answered_later``: the same enable run on a worker thread, answered from
+    there (``rclpy_gaps.intercept_responses``, as the gateway answers), so the executor is free
+    while the drive steps: the least a ROS gateway of python canopen does that must go on
+    serving other calls and publishing meanwhile.
+    """
+    import queue
+
     from bench_drives import Canopen402, UdpBus
     import rclpy
 
     from cbcan_ros.ros.interface import SERVICE_QOS
+    from cbcan_ros.ros.rclpy_gaps import intercept_responses
     from cbcan_ros.srv import DriveCommand
 
     drive = Canopen402(UdpBus(args.channel, bus_options['port']), args.nodes[0])
@@ -517,9 +528,38 @@ def run_enable_floor(args, bus_options: Dict) -> None:
         return response
 
     node.create_service(DriveCommand, 'drive_command', command, qos_profile=SERVICE_QOS)
+    requests: queue.Queue = queue.Queue()  # a request, then the header of its answer
+
+    def take(request, response):
+        requests.put((request, response))
+        return response  # a placeholder: the worker answers it
+
+    def answer_later(response, header) -> None:
+        requests.put((None, (response, header)))
+
+    send = intercept_responses(node.create_service(
+        DriveCommand, 'drive_command_answered_later', take, qos_profile=SERVICE_QOS),
+        answer_later)
+
+    def work() -> None:
+        taken = {}  # the request of each placeholder response, until its header comes
+        while True:
+            request, response = requests.get()
+            if request is not None:
+                taken[id(response)] = request
+                continue
+            if response is None:
+                return
+            response, header = response
+            send(command(taken.pop(id(response)), response), header)
+
+    worker = threading.Thread(target=work, daemon=True)
+    worker.start()
     try:
         _spin_and_serve(node, threading.Event())
     finally:
+        requests.put((None, None))
+        worker.join()
         node.destroy_node()
         rclpy.try_shutdown()
         drive.close()
