@@ -390,7 +390,7 @@ def row_enable(caller: Caller, node: NodeProcess, reference: Canopen402,
     trip (service ``trigger``, a process of its own) is timed in the same rounds, and the
     floor (service ``floor``, ``bench_drive_host.py enable-floor``): BaseNode402 inside a
     bare rclpy ``DriveCommand`` callback, the least any ROS gateway of python canopen does;
-    and the same answered later from a worker thread (``floor``\ ``_answered_later``).
+    and the same answered later from a worker thread (``floor`` + ``_answered_later``).
     """
     from std_srvs.srv import Trigger
 
