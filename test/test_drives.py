@@ -461,6 +461,33 @@ def test_set_mode_holds_the_axis_and_answers_in_the_new_mode(rig):
     wait_until(lambda: axis.drive.velocity == 0, WAIT, 'zero torque: the axis at rest')
 
 
+# Once a defect (a red team's): targets streamed in the old mode while set_mode ran were
+# refused only while the axis was halted for it; from the release to the answer (two SYNCs
+# and a read, with synchronous RPDOs), the drive took them as the new mode's: a velocity as a
+# CSP position, a position as a PP set-point that then replaced the set_mode.
+@pytest.mark.parametrize('mode', [CSP, PP])
+def test_no_target_is_taken_while_the_mode_changes(rig, mode):
+    axis = rig(**{'drives.command_timeout': 0.0})
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=1.0))
+    wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    service = axis.gateway.node.gateway.drives
+    commands = service._commands
+    release = commands._release_held
+    taken = []
+
+    async def releasing(drive, mode, held) -> None:
+        await release(drive, mode, held)
+        taken.append(service.target(NODE, 12345))  # a target arriving then
+    commands._release_held = releasing
+    answer = axis.command('set_mode', mode)
+    assert answer.success, answer.message
+    assert [result.success for result in taken] == [False]
+    assert 'changing its mode' in taken[0].message, taken[0].message
+    after = service.target(NODE, axis.drive.position)
+    assert after.success, after.message
+
+
 def move_under_way(axis):
     """Enable in PP and move towards 500 rad at 2 rad/s; return the goal once moving."""
     axis.enable(PP)

@@ -230,34 +230,3 @@ def test_a_mode_change_of_a_drive_that_quick_stopped_by_itself_starts_no_motion(
     if command == 'set_mode':
         assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE'
 
-
-# Once a defect (a red team's): a mode change of an axis moving in CSV read where it stood by
-# SDO, then sent that as the CSP target and the mode: the axis had moved on meanwhile (270 ms
-# once, on a busy machine), and the drive entering CSP ran back to where it had been.
-@pytest.mark.parametrize('layout', ['combined', 'vendor'])
-@pytest.mark.parametrize('command', ['enable', 'set_mode'])
-def test_a_mode_change_of_a_moving_axis_holds_it_where_it_stood(rig, layout, command):
-    axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos(layout))
-    axis.enable_moving()
-    axis.stop_streams()  # 0x60FF holds VELOCITY: the axis runs on
-    entering = []
-    move = axis.drive._move
-
-    def moving(elapsed: float) -> None:
-        if axis.drive._read(MODE) == CSP and not entering:  # the first cycle in CSP
-            entering.append((axis.drive._velocity,
-                             axis.drive._read(TARGET_POSITION) - axis.drive._position))
-        move(elapsed)
-    axis.drive._move = moving
-    answer = axis.command(command, CSP)
-    assert answer.success, answer.message
-    assert (answer.state, answer.mode) == ('OPERATION_ENABLED', CSP)
-    wait_until(lambda: entering, ANSWER, 'a cycle of the drive in CSP')
-    velocity, behind = entering[0]
-    assert velocity == 0 and abs(behind) < 1, (
-        f'the axis entered CSP at velocity {velocity}, its target {behind:+.1f} from where '
-        f'it stood')
-    wait_until(lambda: not axis.latest().halted, ANSWER, 'drive_state not halted')
-    start = axis.drive.position
-    axis.stream(start + 100.0)  # CSP targets are taken: the axis follows them
-    axis.drive_reaches(lambda drive: drive.position == start + 100, 'the axis at its target')

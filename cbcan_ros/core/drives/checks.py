@@ -149,6 +149,9 @@ def state_problem(status: DriveStatus, heard: bool, enabled: bool) -> Optional[s
     if enabled and status.faulted:
         return (f'node {node_id} is in {status.state} (error 0x{status.error_code:04X} '
                 f'{status.error}): call fault_reset and enable')
+    if enabled and status.changing_mode:
+        return (f'node {node_id} is changing its mode (set_mode): targets and commands that '
+                f'need it enabled are taken once that has answered')
     if enabled and (status.state != cia402.OPERATION_ENABLED or status.needs_enable):
         fresh = ' and needs a fresh enable' if status.needs_enable else ''
         return f'node {node_id} is {status.state}{fresh}: call drive_command enable first'

@@ -35,6 +35,9 @@ HALT_WAIT = 2.0
 STANDSTILL_WAIT = 0.5
 # How long enable waits for the drive's PDO mapping being read (``mapping_known``).
 MAPPING_WAIT = 2.0
+# Before a mode change, an axis stands once it moves less than its position window in this
+# long (a velocity read may jitter around 0 for good).
+STILL_SPAN = 0.1
 # The drive's re-reads (``read_wanted``) when the running sequence was asked for; None for
 # a stop, which goes to whatever drive is there.
 READS_AT_START: contextvars.ContextVar = contextvars.ContextVar('reads_at_start')
@@ -43,6 +46,8 @@ READS_AT_START: contextvars.ContextVar = contextvars.ContextVar('reads_at_start'
 ENABLED_ONLY: contextvars.ContextVar = contextvars.ContextVar('enabled_only', default=False)
 # The running sequence's time limit (an ``asyncio.timeout``; its deadline None: no limit).
 TIME_LIMIT: contextvars.ContextVar = contextvars.ContextVar('time_limit', default=None)
+# What the answer of a sequence that timed out adds: where it left the drive.
+TIMED_OUT_NOTE: contextvars.ContextVar = contextvars.ContextVar('timed_out_note', default='')
 
 
 class DriveFailed(Exception):
@@ -159,7 +164,8 @@ class DriveCommands:
         except TimeoutError:
             status = service.status(node_id)
             message = (f'timed out after {timeout:g} s: node {node_id} is {status.state} '
-                       f'(statusword 0x{status.statusword:04X}, mode {status.mode})')
+                       f'(statusword 0x{status.statusword:04X}, mode {status.mode})'
+                       f'{TIMED_OUT_NOTE.get()}')
             if halt_on_timeout:  # a motion that did not end in time does not run on
                 message = await self._halt_answered(drive, task, message)
             return DriveResult(False, message, service.status(node_id))
@@ -292,8 +298,8 @@ class DriveCommands:
                                                                 SEND_TIMEOUT))
             if cia402.POSITION_ACTUAL not in read:
                 raise DriveFailed(f'node {drive.node_id}: its actual position (0x6064) could '
-                                  f'not be read, so no target could hold the axis; nothing '
-                                  f'was enabled')
+                                  f'not be read, so no target could hold the axis; neither '
+                                  f'the mode nor the state was changed')
             value = read[cia402.POSITION_ACTUAL]
         return {index: value}
 
@@ -321,23 +327,44 @@ class DriveCommands:
         return hold if halted_here else None
 
     async def _halt_for_mode(self, drive) -> bool:
-        """Halt an enabled axis that is not halted, until it stands; return whether it was.
+        """Bring an enabled axis to a stand before its mode changes; return whether it halted it.
 
-        Before a mode change: the new mode's holding target is read once the axis stands. Read
-        while it moves, it is where the axis was some milliseconds before the change, and a
-        drive entering CSP would run back to it. A velocity that never reads exactly 0 (see
-        ``standstill``) is waited for as long as enable waits, then the axis is held there.
+        The new mode's holding target is read once the axis stands: read while it moves, it
+        is where the axis was some milliseconds before the change, and a drive entering CSP
+        would run back to it. An axis that shows velocity 0 stands already; another is
+        halted (a halt of a mode change before, replaced or timed out, counts as this one's)
+        and waited for until it moves less than its position window in ``STILL_SPAN``, within
+        the command's time: a velocity read may jitter around 0 for good, and a long braking
+        ramp is waited for, never cut short. One halted by a halt, a cancelled move or the
+        command timeout stays halted.
         """
-        status = self._service.status(drive.node_id)
-        if status.state != cia402.OPERATION_ENABLED or drive.controlword & cia402.HALT:
+        if self._service.status(drive.node_id).state != cia402.OPERATION_ENABLED:
             return False
-        stopping: Dict[int, int] = {}
-        await self._send(drive, {}, halt='mode change', stopping=stopping)
-        if stopping:  # a write of its own, as ``_halt`` sends it
-            await self._send(drive, stopping)
-        with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(self._standstill(drive), STANDSTILL_WAIT)
-        return True
+        ours = drive.halted_by == 'mode change'
+        if not drive.controlword & cia402.HALT:
+            read = await asyncio.wrap_future(self._service.read_feedback(
+                drive, [cia402.VELOCITY_ACTUAL], SEND_TIMEOUT))
+            if read.get(cia402.VELOCITY_ACTUAL) == 0:
+                return False
+            stopping: Dict[int, int] = {}
+            await self._send(drive, {}, halt='mode change', stopping=stopping)
+            if stopping:  # a write of its own, as ``_halt`` sends it
+                await self._send(drive, stopping)
+            ours = True
+        if ours:
+            TIMED_OUT_NOTE.set('; the axis was halted for the mode change and is held in its '
+                               'old mode: call enable (in the mode wanted) to go on from '
+                               'where it stands')
+        window = await position_window(drive, SEND_TIMEOUT)
+        await self._read_position(drive)
+        before = self._service.status(drive.node_id).position
+        while True:
+            await asyncio.sleep(STILL_SPAN)
+            await self._read_position(drive)
+            here = self._service.status(drive.node_id).position
+            if abs(here - before) <= window:
+                return ours
+            before = here
 
     async def _release_held(self, drive, mode: int, held: int) -> None:
         """Release the halt of an axis held where it stands (at ``held`` in a position mode).
@@ -395,8 +422,9 @@ class DriveCommands:
         if self._service.status(drive.node_id).state != cia402.OPERATION_ENABLED:
             drive.pp_goal = None  # enabled afresh, a drive takes where it stands as its base
         mode = mode or self._service.status(drive.node_id).mode
-        halted_here = not self._shows_mode(drive, mode) and await self._halt_for_mode(drive)
-        if (not halted_here and drive.controlword & cia402.HALT
+        if not self._shows_mode(drive, mode):
+            await self._halt_for_mode(drive)
+        elif (drive.controlword & cia402.HALT
                 and self._service.status(drive.node_id).state == cia402.OPERATION_ENABLED):
             # Held where it stands, not where it slows. A velocity read may never be exactly
             # 0: waited for, then the axis is held where it is.
@@ -511,10 +539,25 @@ class DriveCommands:
                 f'again')
 
     async def _set_mode(self, drive, mode: int) -> str:
-        hold = await self._change_mode(drive, mode)
-        if hold is not None:
-            await self._release_held(drive, mode, hold.get(cia402.TARGET_POSITION, 0))
-        return f'node {drive.node_id} is in {cia402.mode_name(mode)}'
+        # No target of the old mode may be taken as one of the new (the drive shows the new
+        # mode before the release): refused until the answer. One that fails leaves the
+        # drive to a fresh enable, which holds it where it stands; a resume would not.
+        enabled = not self._service.status(drive.node_id).needs_enable
+        self._service.set_enabled(drive, False, changing_mode=True)
+        try:
+            hold = await self._change_mode(drive, mode)
+            if hold is not None:
+                await self._release_held(drive, mode, hold.get(cia402.TARGET_POSITION, 0))
+        except BaseException:
+            self._service.set_enabled(drive, False)
+            raise
+        # Not when it left OPERATION_ENABLED, faulted, booted or was stopped meanwhile.
+        enabled = enabled and self._service.status(drive.node_id).changing_mode
+        self._service.set_enabled(drive, enabled)
+        status = self._service.status(drive.node_id)
+        fresh = ('; it takes targets after an enable' if not enabled
+                 and status.state == cia402.OPERATION_ENABLED else '')
+        return f'node {drive.node_id} is in {cia402.mode_name(mode)}{fresh}'
 
     async def _home(self, drive, _mode: int) -> str:
         await self._change_mode(drive, cia402.HOMING)

@@ -106,7 +106,8 @@ def send_stops(records: Iterable[DriveRecord], word: int, lock,
                 drive.controlword = word
                 # The stop's controlword has no halt bit: shown halted, the drive would say so.
                 drive.halted_by = ''
-                drive.status = replace(drive.status, needs_enable=True, halted=False)
+                drive.status = replace(drive.status, needs_enable=True, changing_mode=False,
+                                       halted=False)
                 updates = drive.updates
                 tell(drive)
             sent.append((drive, updates, drive.objects.write_by_sdo(

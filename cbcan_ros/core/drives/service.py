@@ -508,10 +508,14 @@ class DriveService:
             if changed:
                 self._tell(drive)
 
-    def set_enabled(self, drive: DriveRecord, enabled: bool) -> None:
-        """Record that an enable succeeded (targets taken) or that a fresh one is needed."""
+    def set_enabled(self, drive: DriveRecord, enabled: bool, changing_mode: bool = False) -> None:
+        """Record that an enable succeeded (targets taken) or that a fresh one is needed.
+
+        ``changing_mode``: not enabled only while a set_mode runs (``DriveStatus``).
+        """
         with self._lock:
-            drive.status = replace(drive.status, needs_enable=not enabled)
+            drive.status = replace(drive.status, needs_enable=not enabled,
+                                   changing_mode=changing_mode)
             drive.last_target = time.monotonic()
 
     def read_feedback(self, drive: DriveRecord, indexes: List[int],
@@ -570,7 +574,7 @@ class DriveService:
                 drive.objects.forget()
                 drive.halted_by = ''
                 drive.status = replace(drive.status, state=cia402.UNKNOWN, needs_enable=True,
-                                       halted=False)
+                                       changing_mode=False, halted=False)
                 self._tell(drive)
         if boot:  # a command running ends (commands._until)
             self._wake(drive)

@@ -44,6 +44,7 @@ class DriveStatus:
     received: float = 0.0  # time.monotonic() of the last feedback; 0 = none yet
     halted: bool = False
     needs_enable: bool = True  # targets are refused until an enable succeeds
+    changing_mode: bool = False  # why, meanwhile: a set_mode runs (targets wait for it)
     supported_modes: int = 0  # 0x6502; 0 = not read
 
     @property
@@ -189,11 +190,12 @@ def updated(old: DriveStatus, values: Dict[int, int], stamp: float,
                       torque=values.get(cia402.TORQUE_ACTUAL, old.torque),
                       error_code=values.get(cia402.ERROR_CODE, old.error_code),
                       received=stamp, halted=old.halted, needs_enable=old.needs_enable,
-                      supported_modes=old.supported_modes)
+                      changing_mode=old.changing_mode, supported_modes=old.supported_modes)
     if old.state == cia402.OPERATION_ENABLED and new.state != old.state:
-        new = replace(new, needs_enable=True)  # left it by itself: enable it afresh
+        # Left it by itself: enable it afresh, whatever a set_mode under way had in mind.
+        new = replace(new, needs_enable=True, changing_mode=False)
     if new.faulted and not old.faulted:
         # The EMCY the drive sent with its fault names the error until 0x603F is read.
-        new = replace(new, needs_enable=True,
+        new = replace(new, needs_enable=True, changing_mode=False,
                       error_code=values.get(cia402.ERROR_CODE, emcy_code or old.error_code))
     return new

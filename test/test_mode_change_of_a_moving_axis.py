@@ -1,0 +1,133 @@
+"""A mode change of a moving axis brings it to a stand first, and holds it there in the new mode.
+
+The new mode's holding target (in CSP the position) is read once the axis stands: read while
+it moves, it is where the axis was, and the drive entering CSP runs back to it. No target of
+the old mode is taken as one of the new while the mode changes; a change that fails leaves
+the axis halted in its old mode, and only a fresh enable (which holds it where it stands)
+goes on. The installed ``cbcan_node`` runs as a child process, the simulated drive in this
+process (``test_drive_safety``'s rig). That no target is taken while the mode changes is
+tested in ``test_drives``, whose gateway runs in this process.
+"""
+
+import struct
+
+import pytest
+from test_drive_safety import ANSWER, DriveRig, NODE
+
+from cbcan_ros.core.drives.commands import STILL_SPAN
+from cbcan_ros.simulation.durand.drive_objects import PROFILE_ACCELERATION
+from cbcan_ros.simulation.durand.drive_pdos import drive_pdos as layout_pdos
+
+from conftest import wait_until
+
+PP, PV, CSP, CSV = 1, 3, 8, 9
+MODE, TARGET_POSITION = 0x6060, 0x607A
+# A braking ramp that takes 1.5 s from the rig's VELOCITY (1500 counts/s): longer than the
+# half second the gateway once waited before it went on, moving.
+LONG_RAMP = 1000
+# The simulated drive's position window (0x6067), counts: an axis moving less than this in
+# STILL_SPAN stands, for the gateway (a velocity read may jitter around 0 for good).
+WINDOW = 10
+
+
+@pytest.fixture
+def rig(start_node, client_node, start_durand):
+    """Return ``rig(*parameters, pdos=...)``: a DriveRig, closed after the test."""
+    made = []
+
+    def factory(*parameters: str, pdos) -> DriveRig:
+        made.append(DriveRig(start_node, client_node, start_durand, *parameters, pdos=pdos))
+        return made[-1]
+    yield factory
+    for each in made:
+        each.close()
+
+
+def moving_in_csv(rig, layout: str, ramp: int = 0) -> DriveRig:
+    """Return a rig whose axis runs in CSV at VELOCITY with no stream (``ramp``: its 0x6083)."""
+    axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos(layout))
+    axis.enable_moving()
+    axis.stop_streams()  # 0x60FF holds VELOCITY: the axis runs on
+    if ramp:
+        axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', ramp))
+    return axis
+
+
+def entering_csp(drive) -> list:
+    """Record (velocity, target - position) at the drive's first cycle in CSP."""
+    entering = []
+    move = drive._move
+
+    def moving(elapsed: float) -> None:
+        if drive._read(MODE) == CSP and not entering:
+            entering.append((drive._velocity, drive._read(TARGET_POSITION) - drive._position))
+        move(elapsed)
+    drive._move = moving
+    return entering
+
+
+# Once a defect (a red team's): a mode change of an axis moving in CSV read where it stood by
+# SDO, then sent that as the CSP target and the mode: the axis had moved on meanwhile (270 ms
+# once, on a busy machine), and the drive entering CSP ran back to where it had been. Then,
+# with the axis halted first, a braking ramp longer than half a second was cut short: the
+# drive entered CSP at two thirds of its speed (9 of 9 runs).
+@pytest.mark.parametrize('ramp', [0, LONG_RAMP], ids=['at-once', 'long-ramp'])
+@pytest.mark.parametrize('layout', ['combined', 'vendor'])
+@pytest.mark.parametrize('command', ['enable', 'set_mode'])
+def test_a_mode_change_of_a_moving_axis_holds_it_where_it_stood(rig, layout, command, ramp):
+    axis = moving_in_csv(rig, layout, ramp)
+    entering = entering_csp(axis.drive)
+    answer = axis.command(command, CSP)
+    assert answer.success, answer.message
+    assert (answer.state, answer.mode) == ('OPERATION_ENABLED', CSP)
+    wait_until(lambda: entering, ANSWER, 'a cycle of the drive in CSP')
+    velocity, behind = entering[0]
+    assert abs(velocity) <= WINDOW / STILL_SPAN and abs(behind) <= WINDOW, (
+        f'the axis entered CSP at velocity {velocity}, its target {behind:+.1f} from where '
+        f'it stood')
+    wait_until(lambda: not axis.latest().halted, ANSWER, 'drive_state not halted')
+    start = axis.drive.position
+    axis.stream(start + 100.0)  # CSP targets are taken: the axis follows them
+    axis.drive_reaches(lambda drive: drive.position == start + 100, 'the axis at its target')
+
+
+# Once a defect (a red team's): a set_mode that timed out while the axis braked left it
+# halted in its old mode, and the answer told neither that nor how to go on; the resume the
+# target refusals suggested released the halt, and the axis ran up to its old velocity again.
+# A second set_mode then answered success with the axis still halted.
+def test_a_mode_change_that_times_out_leaves_the_axis_halted_and_only_enable_goes_on(rig):
+    axis = moving_in_csv(rig, 'combined', LONG_RAMP)
+    answer = axis.command('set_mode', CSP, timeout=0.2)
+    assert not answer.success
+    assert 'halted for the mode change' in answer.message, answer.message
+    assert 'call enable' in answer.message, answer.message
+    assert answer.mode == CSV
+    resumed = axis.command('resume')
+    assert not resumed.success and 'enable' in resumed.message, resumed.message
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis braked to a stand')
+    assert axis.drive._read(MODE) == CSV
+    again = axis.command('set_mode', CSP)
+    assert again.success, again.message
+    assert 'takes targets after an enable' in again.message, again.message
+    wait_until(lambda: not axis.latest().halted, ANSWER, 'drive_state not halted')
+    axis.drive_reaches(lambda drive: drive._read(MODE) == CSP and drive.velocity == 0,
+                       'the axis standing in CSP')
+    stood = axis.drive.position
+    enabled = axis.command('enable', CSP)
+    assert enabled.success, enabled.message
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis standing')
+    assert abs(axis.drive.position - stood) <= WINDOW
+
+
+def test_a_set_mode_of_a_standing_axis_does_not_halt_it(rig):
+    axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos('combined'))
+    axis.wait_state('SWITCH_ON_DISABLED')
+    axis.nmt_start()
+    assert axis.command('enable', PV).success
+    since = axis.recorder.mark()
+    answer = axis.command('set_mode', CSV)
+    assert answer.success, answer.message
+    words = [struct.unpack_from('<H', m.data)[0] for m in axis.recorder.messages(since)
+             if m.arbitration_id == 0x200 + NODE]
+    assert not any(word & 0x100 for word in words), [hex(word) for word in words]
+
