@@ -488,6 +488,27 @@ def test_no_target_is_taken_while_the_mode_changes(rig, mode):
     assert after.success, after.message
 
 
+def test_a_set_mode_that_could_not_halt_the_axis_leaves_it_to_the_command_timeout(rig):
+    # The drive took no halt (its controlword write failed): set_mode fails, and the axis,
+    # running on its last target, must stay what it was, enabled, so that the command
+    # timeout halts it once no target comes (it watches no drive that needs an enable).
+    axis = rig(**{'drives.command_timeout': 0.5})
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=1.0))
+    wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    commands = axis.gateway.node.gateway.drives._commands
+    send = commands._send
+
+    async def refusing_the_halt(drive, values, halt=None, stopping=None):
+        if halt == 'mode change':
+            raise drive_commands.DriveFailed(f'node {NODE}: the halt was refused (test)')
+        return await send(drive, values, halt, stopping)
+    commands._send = refusing_the_halt
+    answer = axis.command('set_mode', CSP)
+    assert not answer.success and 'the halt was refused' in answer.message, answer.message
+    wait_until(lambda: axis.drive.velocity == 0, WAIT, 'the command timeout halting the axis')
+
+
 def move_under_way(axis):
     """Enable in PP and move towards 500 rad at 2 rad/s; return the goal once moving."""
     axis.enable(PP)

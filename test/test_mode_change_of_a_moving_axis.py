@@ -10,18 +10,21 @@ tested in ``test_drives``, whose gateway runs in this process.
 """
 
 import struct
+import threading
 
 import pytest
 from test_drive_safety import ANSWER, DriveRig, NODE
 
 from cbcan_ros.core.drives.commands import STILL_SPAN
+from cbcan_ros.simulation.cia402_states import State
 from cbcan_ros.simulation.durand.drive_objects import PROFILE_ACCELERATION
 from cbcan_ros.simulation.durand.drive_pdos import drive_pdos as layout_pdos
 
 from conftest import wait_until
 
 PP, PV, CSP, CSV = 1, 3, 8, 9
-MODE, TARGET_POSITION = 0x6060, 0x607A
+MODE, TARGET_POSITION, CONTROLWORD, POSITION_WINDOW = 0x6060, 0x607A, 0x6040, 0x6067
+QUICK_STOP_OPTION = 0x605A
 # A braking ramp that takes 1.5 s from the rig's VELOCITY (1500 counts/s): longer than the
 # half second the gateway once waited before it went on, moving.
 LONG_RAMP = 1000
@@ -43,9 +46,13 @@ def rig(start_node, client_node, start_durand):
         each.close()
 
 
-def moving_in_csv(rig, layout: str, ramp: int = 0) -> DriveRig:
-    """Return a rig whose axis runs in CSV at VELOCITY with no stream (``ramp``: its 0x6083)."""
+def moving_in_csv(rig, layout: str, ramp: int = 0, window: int = WINDOW) -> DriveRig:
+    """Return a rig whose axis runs in CSV at VELOCITY with no stream.
+
+    ``ramp``: its 0x6083 (the simulated drive brakes a halt with it); ``window``: its 0x6067.
+    """
     axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos(layout))
+    axis.drive.set_value(POSITION_WINDOW, 0, struct.pack('<I', window))
     axis.enable_moving()
     axis.stop_streams()  # 0x60FF holds VELOCITY: the axis runs on
     if ramp:
@@ -70,12 +77,16 @@ def entering_csp(drive) -> list:
 # SDO, then sent that as the CSP target and the mode: the axis had moved on meanwhile (270 ms
 # once, on a busy machine), and the drive entering CSP ran back to where it had been. Then,
 # with the axis halted first, a braking ramp longer than half a second was cut short: the
-# drive entered CSP at two thirds of its speed (9 of 9 runs).
-@pytest.mark.parametrize('ramp', [0, LONG_RAMP], ids=['at-once', 'long-ramp'])
+# drive entered CSP at two thirds of its speed (9 of 9 runs); and with a wide position window
+# (0x6067 100000), an axis at nearly full speed moved less than it in 0.1 s and passed as
+# standing (12 of 12).
+@pytest.mark.parametrize('ramp, window', [(0, WINDOW), (LONG_RAMP, WINDOW), (LONG_RAMP, 100000)],
+                         ids=['at-once', 'long-ramp', 'long-ramp-wide-window'])
 @pytest.mark.parametrize('layout', ['combined', 'vendor'])
 @pytest.mark.parametrize('command', ['enable', 'set_mode'])
-def test_a_mode_change_of_a_moving_axis_holds_it_where_it_stood(rig, layout, command, ramp):
-    axis = moving_in_csv(rig, layout, ramp)
+def test_a_mode_change_of_a_moving_axis_holds_it_where_it_stood(rig, layout, command, ramp,
+                                                                 window):
+    axis = moving_in_csv(rig, layout, ramp, window)
     entering = entering_csp(axis.drive)
     answer = axis.command(command, CSP)
     assert answer.success, answer.message
@@ -131,3 +142,42 @@ def test_a_set_mode_of_a_standing_axis_does_not_halt_it(rig):
              if m.arbitration_id == 0x200 + NODE]
     assert not any(word & 0x100 for word in words), [hex(word) for word in words]
 
+
+
+# Once a defect (a red team's): a homing from a moving mode that timed out while the axis
+# braked left it halted in that mode, and a resume ran it up to its old velocity again.
+def test_a_homing_that_times_out_while_the_axis_brakes_needs_a_fresh_enable(rig):
+    axis = moving_in_csv(rig, 'combined', LONG_RAMP)
+    answer = axis.command('home', timeout=0.3)
+    assert not answer.success
+    assert 'halted for the mode change' in answer.message, answer.message
+    resumed = axis.command('resume')
+    assert not resumed.success and 'enable' in resumed.message, resumed.message
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis braked to a stand')
+
+
+# Once a defect (a red team's): a drive that quick-stopped by itself (its input) while it
+# braked for a set_mode was enabled again by the set_mode's own frames once it stood
+# (transition 16), and set_mode answered success with the drive in QUICK_STOP_ACTIVE.
+def test_a_drive_that_stops_by_itself_during_a_mode_change_ends_it_and_stays_stopped(rig):
+    axis = moving_in_csv(rig, 'combined', LONG_RAMP)
+    axis.drive.set_value(QUICK_STOP_OPTION, 0, struct.pack('<h', 6))  # stays in quick stop
+    enabled_again = []
+    enter = axis.drive._enter
+
+    def entering(state) -> None:
+        if state is State.OPERATION_ENABLED:
+            enabled_again.append(state)
+        enter(state)
+    axis.drive._enter = entering
+    its_input = threading.Timer(0.4, lambda: axis.drive.set_value(
+        CONTROLWORD, 0, struct.pack('<H', 0x02)))
+    its_input.start()
+    try:
+        answer = axis.command('set_mode', CSP)
+    finally:
+        its_input.join()
+    assert not answer.success
+    assert 'left OPERATION_ENABLED' in answer.message, answer.message
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis at a stand')
+    assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE' and not enabled_again

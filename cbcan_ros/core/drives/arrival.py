@@ -49,6 +49,26 @@ async def position_window(drive, timeout: float) -> int:
     return drive.position_window
 
 
+async def velocity_threshold(drive, timeout: float) -> int:
+    """Return the velocity the drive regards as 0 (0x606F), 0 when it has none; kept as the window.
+
+    A read that failed otherwise (a timeout) is tried again next time, 0 meanwhile.
+    """
+    if drive.velocity_threshold is None:
+        reads = drive.read_wanted
+        result, = await asyncio.wrap_future(drive.objects.read_entries(
+            cia402.VELOCITY_THRESHOLD, (0,), timeout))
+        if drive.read_wanted != reads:
+            return 0
+        if result.success:
+            drive.velocity_threshold = decode(cia402.VELOCITY_THRESHOLD, result.data)
+        elif result.abort_code in ABSENT:
+            drive.velocity_threshold = 0
+        else:
+            return 0
+    return drive.velocity_threshold
+
+
 async def software_limits(drive, timeout: float) -> Optional[Tuple[int, int]]:
     """Return the drive's software position limits (0x607D:1, :2), None when it has none.
 

@@ -16,12 +16,14 @@ from typing import Callable, Dict, Optional, Tuple
 from ..text import SHUTTING_DOWN
 from . import cia402
 from .arrival import (
+    DEFAULT_WINDOW,
     HOME_HERE,
     LimitsUnknown,
     missed,
     outside_limits,
     position_window,
     software_limits,
+    velocity_threshold,
 )
 from .checks import ENABLED_COMMANDS, lost_problem, state_problem
 from .standstill import until_applied_at_sync, wait_for_standstill
@@ -35,9 +37,15 @@ HALT_WAIT = 2.0
 STANDSTILL_WAIT = 0.5
 # How long enable waits for the drive's PDO mapping being read (``mapping_known``).
 MAPPING_WAIT = 2.0
-# Before a mode change, an axis stands once it moves less than its position window in this
-# long (a velocity read may jitter around 0 for good).
+# Before a mode change, in a cyclic mode or profile torque, an axis of a drive without a
+# velocity threshold (0x606F) stands once it moves less than its position window (at most
+# DEFAULT_WINDOW) in this long: a velocity read may jitter around 0 for good.
 STILL_SPAN = 0.1
+# The modes in which a halted drive shows that it stands (statusword bits 10, 12).
+SHOWS_STANDSTILL = frozenset({cia402.PROFILE_POSITION, cia402.PROFILE_VELOCITY, cia402.HOMING})
+# What the answer of a sequence that ended with the axis halted for a mode change adds.
+HELD_FOR_THE_MODE_CHANGE = ('; the axis was halted for the mode change and is held there: call '
+                            'enable (in the mode wanted) to go on from where it stands')
 # The drive's re-reads (``read_wanted``) when the running sequence was asked for; None for
 # a stop, which goes to whatever drive is there.
 READS_AT_START: contextvars.ContextVar = contextvars.ContextVar('reads_at_start')
@@ -46,8 +54,6 @@ READS_AT_START: contextvars.ContextVar = contextvars.ContextVar('reads_at_start'
 ENABLED_ONLY: contextvars.ContextVar = contextvars.ContextVar('enabled_only', default=False)
 # The running sequence's time limit (an ``asyncio.timeout``; its deadline None: no limit).
 TIME_LIMIT: contextvars.ContextVar = contextvars.ContextVar('time_limit', default=None)
-# What the answer of a sequence that timed out adds: where it left the drive.
-TIMED_OUT_NOTE: contextvars.ContextVar = contextvars.ContextVar('timed_out_note', default='')
 
 
 class DriveFailed(Exception):
@@ -159,18 +165,19 @@ class DriveCommands:
                 message = await sequence()
             return DriveResult(True, message, service.status(node_id))
         except DriveFailed as failure:
-            return DriveResult(False, str(failure), service.status(node_id),
-                               failure.abort_code)
+            return DriveResult(False, f'{failure}{self._held_for_the_mode(drive)}',
+                               service.status(node_id), failure.abort_code)
         except TimeoutError:
             status = service.status(node_id)
             message = (f'timed out after {timeout:g} s: node {node_id} is {status.state} '
                        f'(statusword 0x{status.statusword:04X}, mode {status.mode})'
-                       f'{TIMED_OUT_NOTE.get()}')
+                       f'{self._held_for_the_mode(drive)}')
             if halt_on_timeout:  # a motion that did not end in time does not run on
                 message = await self._halt_answered(drive, task, message)
             return DriveResult(False, message, service.status(node_id))
         except asyncio.CancelledError:
-            reason = self._reasons.pop(task, SHUTTING_DOWN)
+            reason = (self._reasons.pop(task, SHUTTING_DOWN)
+                      + self._held_for_the_mode(drive))
             halting = task in self._halt_when_cancelled
             self._halt_when_cancelled.discard(task)
             # A move replaced before its cancel came halts nothing: the drive is the newer
@@ -313,11 +320,11 @@ class DriveCommands:
         enabled in another mode is halted first (``_halt_for_mode``): then return the holding
         target, for the caller to release the halt on it or start its motion; else None.
         """
-        self._service.keep_state(drive)
         halted_here = False
         if hold is None:
             halted_here = not self._shows_mode(drive, mode) and await self._halt_for_mode(drive)
             hold = await self._hold(drive, mode)
+        self._service.keep_state(drive)  # after the wait for the axis: it may have stopped
         if hold:
             await self._send(drive, hold)
         if not self._shows_mode(drive, mode):
@@ -331,40 +338,76 @@ class DriveCommands:
 
         The new mode's holding target is read once the axis stands: read while it moves, it
         is where the axis was some milliseconds before the change, and a drive entering CSP
-        would run back to it. An axis that shows velocity 0 stands already; another is
-        halted (a halt of a mode change before, replaced or timed out, counts as this one's)
-        and waited for until it moves less than its position window in ``STILL_SPAN``, within
-        the command's time: a velocity read may jitter around 0 for good, and a long braking
-        ramp is waited for, never cut short. One halted by a halt, a cancelled move or the
-        command timeout stays halted.
+        would run back to it. An axis whose velocity is within the drive's velocity threshold
+        (0x606F; exactly 0 without one) stands already; another is halted (a halt of a mode
+        change before, replaced or timed out, counts as this one's) and waited for within the
+        command's time (``_until_standing``): a long braking ramp is never cut short. One
+        halted by a halt, a cancelled move or the command timeout stays halted. A drive that
+        leaves OPERATION_ENABLED meanwhile ends the command: nothing more is sent to it.
         """
-        if self._service.status(drive.node_id).state != cia402.OPERATION_ENABLED:
+        status = self._service.status(drive.node_id)
+        if status.state != cia402.OPERATION_ENABLED:
             return False
+        threshold = await velocity_threshold(drive, SEND_TIMEOUT)
         ours = drive.halted_by == 'mode change'
-        if not drive.controlword & cia402.HALT:
+        halting = not drive.controlword & cia402.HALT
+        if halting:
             read = await asyncio.wrap_future(self._service.read_feedback(
                 drive, [cia402.VELOCITY_ACTUAL], SEND_TIMEOUT))
-            if read.get(cia402.VELOCITY_ACTUAL) == 0:
+            if abs(read.get(cia402.VELOCITY_ACTUAL, threshold + 1)) <= threshold:
                 return False
             stopping: Dict[int, int] = {}
             await self._send(drive, {}, halt='mode change', stopping=stopping)
             if stopping:  # a write of its own, as ``_halt`` sends it
                 await self._send(drive, stopping)
             ours = True
-        if ours:
-            TIMED_OUT_NOTE.set('; the axis was halted for the mode change and is held in its '
-                               'old mode: call enable (in the mode wanted) to go on from '
-                               'where it stands')
-        window = await position_window(drive, SEND_TIMEOUT)
-        await self._read_position(drive)
-        before = self._service.status(drive.node_id).position
+        await self._until_standing(drive, status.mode, threshold, halting)
+        return ours
+
+    async def _until_standing(self, drive, mode: int, threshold: int, halting: bool) -> None:
+        """Return once the halted axis stands, by the drive's own sign where it gives one.
+
+        In profile position, profile velocity and homing, as ``halt`` judges it (statusword
+        bits 10 and 12, at the drive's own windows). In the cyclic modes and profile torque,
+        where CiA 402 leaves those bits to the vendor: a velocity within the drive's velocity
+        threshold (0x606F), or, without one, less motion than its position window (at most
+        ``DEFAULT_WINDOW``: a wide window would let a braking axis pass) in ``STILL_SPAN``.
+        Raises when the drive leaves OPERATION_ENABLED, faults or is lost meanwhile.
+        """
+        async def until(drive, ok: Callable):
+            status = await self._until(drive, lambda s: s.state != cia402.OPERATION_ENABLED
+                                       or ok(s))
+            if status.state != cia402.OPERATION_ENABLED:
+                raise DriveFailed(f'node {drive.node_id} left OPERATION_ENABLED ({status.state})'
+                                  f' while it braked for the mode change; nothing more was '
+                                  f'sent')
+            return status
+        if mode in SHOWS_STANDSTILL:
+            await wait_for_standstill(self._service, drive, until, SEND_TIMEOUT, halting)
+            return
+        window = min(await position_window(drive, SEND_TIMEOUT), DEFAULT_WINDOW)
+        before = None
         while True:
+            read = await asyncio.wrap_future(self._service.read_feedback(
+                drive, [cia402.VELOCITY_ACTUAL, cia402.POSITION_ACTUAL], SEND_TIMEOUT))
+            status = await until(drive, lambda s: True)
+            if threshold and cia402.VELOCITY_ACTUAL in read:
+                if abs(read[cia402.VELOCITY_ACTUAL]) <= threshold:
+                    return
+            elif before is not None and abs(status.position - before) <= window:
+                return
+            before = status.position
             await asyncio.sleep(STILL_SPAN)
-            await self._read_position(drive)
-            here = self._service.status(drive.node_id).position
-            if abs(here - before) <= window:
-                return ours
-            before = here
+
+    def _held_for_the_mode(self, drive) -> str:
+        """Return what an answer adds when its sequence left the axis halted for a mode change.
+
+        The drive then needs a fresh enable: a resume would run the old mode's target again.
+        """
+        if drive.halted_by != 'mode change':
+            return ''
+        self._service.set_enabled(drive, False)
+        return HELD_FOR_THE_MODE_CHANGE
 
     async def _release_held(self, drive, mode: int, held: int) -> None:
         """Release the halt of an axis held where it stands (at ``held`` in a position mode).
@@ -540,8 +583,9 @@ class DriveCommands:
 
     async def _set_mode(self, drive, mode: int) -> str:
         # No target of the old mode may be taken as one of the new (the drive shows the new
-        # mode before the release): refused until the answer. One that fails leaves the
-        # drive to a fresh enable, which holds it where it stands; a resume would not.
+        # mode before the release): refused until the answer. One that fails with the axis
+        # halted for it leaves the drive to a fresh enable (``_held_for_the_mode``); one that
+        # failed to halt it leaves it as it was, the command timeout watching it.
         enabled = not self._service.status(drive.node_id).needs_enable
         self._service.set_enabled(drive, False, changing_mode=True)
         try:
@@ -549,15 +593,22 @@ class DriveCommands:
             if hold is not None:
                 await self._release_held(drive, mode, hold.get(cia402.TARGET_POSITION, 0))
         except BaseException:
-            self._service.set_enabled(drive, False)
+            # Halted for it, the drive needs a fresh enable all the same (``_own``).
+            self._service.set_enabled(drive, self._still_enabled(drive, enabled))
             raise
-        # Not when it left OPERATION_ENABLED, faulted, booted or was stopped meanwhile.
-        enabled = enabled and self._service.status(drive.node_id).changing_mode
+        enabled = self._still_enabled(drive, enabled)
         self._service.set_enabled(drive, enabled)
         status = self._service.status(drive.node_id)
         fresh = ('; it takes targets after an enable' if not enabled
                  and status.state == cia402.OPERATION_ENABLED else '')
         return f'node {drive.node_id} is in {cia402.mode_name(mode)}{fresh}'
+
+    def _still_enabled(self, drive, enabled: bool) -> bool:
+        """Return ``enabled``, unless the drive needs a fresh enable since set_mode began.
+
+        It left OPERATION_ENABLED, faulted, booted or was stopped meanwhile.
+        """
+        return enabled and self._service.status(drive.node_id).changing_mode
 
     async def _home(self, drive, _mode: int) -> str:
         await self._change_mode(drive, cia402.HOMING)

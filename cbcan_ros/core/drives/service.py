@@ -68,7 +68,7 @@ STREAM_KEPT_CYCLES = 3
 # The settings of a drive the gateway reads once and keeps (until a boot): a caller's write
 # of one through the gateway is followed (``writing``).
 KEPT_SETTINGS = frozenset({cia402.PROFILE_VELOCITY_OBJECT, cia402.POSITION_WINDOW,
-                           cia402.SOFTWARE_POSITION_LIMIT})
+                           cia402.VELOCITY_THRESHOLD, cia402.SOFTWARE_POSITION_LIMIT})
 
 
 class DriveService:
@@ -570,6 +570,7 @@ class DriveService:
             if boot or first:  # it may have booted unheard: its settings are read again
                 drive.unread_state = ''
                 drive.position_window = drive.position_limits = drive.pp_goal = None
+                drive.velocity_threshold = None
             if boot:  # UNKNOWN until re-read: its feedback waits for that read (_apply)
                 drive.objects.forget()
                 drive.halted_by = ''
@@ -668,7 +669,8 @@ class DriveService:
         What the gateway keeps of the drive must not undo it: an object its RPDOs map beside
         the commanded ones goes into their frames now (``DriveObjects.hold``); a setting read
         once is taken (0x6081, the profile velocity a move at velocity 0 uses) or read again
-        at the next move (0x6067 the position window, 0x607D the software position limits)
+        at the next move (0x6067 the position window, 0x606F the velocity threshold, 0x607D
+        the software position limits)
         once the write is confirmed. Return what to call with whether it succeeded; None when
         the write touches nothing kept.
         """
@@ -689,6 +691,8 @@ class DriveService:
                     drive.profile_velocity = decode(index, data)
                 elif index == cia402.POSITION_WINDOW:
                     drive.position_window = None
+                elif index == cia402.VELOCITY_THRESHOLD:
+                    drive.velocity_threshold = None
                 elif index == cia402.SOFTWARE_POSITION_LIMIT:
                     drive.position_limits = None
         return settle

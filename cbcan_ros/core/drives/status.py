@@ -109,6 +109,7 @@ class DriveRecord:
     emcy_code: int = 0  # the error code of the last EMCY
     lost_powered: bool = False  # its heartbeat stopped while its power stage was on
     position_window: Optional[int] = None  # 0x6067 in drive units, once read (arrival)
+    velocity_threshold: Optional[int] = None  # 0x606F, once read; 0: the drive has none
     position_limits: Optional[tuple] = None  # 0x607D (min, max); () none; None not read yet
     profile_velocity: int = 0  # 0x6081 as read when heard: what a move with velocity 0 uses
     pp_goal: Optional[int] = None  # the last PP set-point given since its enable: relative base
