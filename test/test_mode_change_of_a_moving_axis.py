@@ -17,6 +17,7 @@ from test_drive_safety import ANSWER, DriveRig, NODE
 
 from cbcan_ros.core.drives.commands import STILL_SPAN
 from cbcan_ros.simulation.cia402_states import State
+from cbcan_ros.simulation.durand.device import DurandDevice
 from cbcan_ros.simulation.durand.drive_objects import PROFILE_ACCELERATION
 from cbcan_ros.simulation.durand.drive_pdos import drive_pdos as layout_pdos
 
@@ -151,6 +152,8 @@ def test_a_homing_that_times_out_while_the_axis_brakes_needs_a_fresh_enable(rig)
     answer = axis.command('home', timeout=0.3)
     assert not answer.success
     assert 'halted for the mode change' in answer.message, answer.message
+    # The timeout's own halt was confirmed (the drive needed an enable only after it).
+    assert 'halted at position' in answer.message, answer.message
     resumed = axis.command('resume')
     assert not resumed.success and 'enable' in resumed.message, resumed.message
     axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis braked to a stand')
@@ -181,3 +184,23 @@ def test_a_drive_that_stops_by_itself_during_a_mode_change_ends_it_and_stays_sto
     assert 'left OPERATION_ENABLED' in answer.message, answer.message
     axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis at a stand')
     assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE' and not enabled_again
+
+
+# Once a defect (a red team's): the drive's velocity threshold (0x606F) was read before the
+# halt; a drive that never answered that read got its halt a second late (the SDO timeout),
+# and a set_mode with a shorter timeout never halted it at all: it ran on at full speed.
+def test_a_drive_slow_to_answer_a_setting_is_halted_at_once_for_a_mode_change(rig,
+                                                                              monkeypatch):
+    unanswered = bytes([0x40, 0x6F, 0x60])  # an SDO upload request of 0x606F
+
+    def on_sdo_frame(device, handler, cob_id, data):
+        if bytes(data[:3]) != unanswered:
+            answer_sdo(device, handler, cob_id, data)
+    answer_sdo = DurandDevice._on_sdo_frame
+    monkeypatch.setattr(DurandDevice, '_on_sdo_frame', on_sdo_frame)
+    axis = moving_in_csv(rig, 'combined', LONG_RAMP)
+    answer = axis.command('set_mode', CSP, timeout=0.3)
+    assert not answer.success
+    assert 'halted for the mode change' in answer.message, answer.message
+    assert axis.drive._controlword & 0x100, 'no halt reached the drive'
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis braked to a stand')

@@ -52,7 +52,8 @@ async def position_window(drive, timeout: float) -> int:
 async def velocity_threshold(drive, timeout: float) -> int:
     """Return the velocity the drive regards as 0 (0x606F), 0 when it has none; kept as the window.
 
-    A read that failed otherwise (a timeout) is tried again next time, 0 meanwhile.
+    A read that failed (a timeout too) counts as none until the drive is read again: each mode
+    change would wait for it again.
     """
     if drive.velocity_threshold is None:
         reads = drive.read_wanted
@@ -60,12 +61,8 @@ async def velocity_threshold(drive, timeout: float) -> int:
             cia402.VELOCITY_THRESHOLD, (0,), timeout))
         if drive.read_wanted != reads:
             return 0
-        if result.success:
-            drive.velocity_threshold = decode(cia402.VELOCITY_THRESHOLD, result.data)
-        elif result.abort_code in ABSENT:
-            drive.velocity_threshold = 0
-        else:
-            return 0
+        drive.velocity_threshold = (decode(cia402.VELOCITY_THRESHOLD, result.data)
+                                    if result.success else 0)
     return drive.velocity_threshold
 
 

@@ -165,26 +165,29 @@ class DriveCommands:
                 message = await sequence()
             return DriveResult(True, message, service.status(node_id))
         except DriveFailed as failure:
-            return DriveResult(False, f'{failure}{self._held_for_the_mode(drive)}',
-                               service.status(node_id), failure.abort_code)
+            held = self._held_for_the_mode(drive, _halted_for_a_mode(drive))
+            return DriveResult(False, f'{failure}{held}', service.status(node_id),
+                               failure.abort_code)
         except TimeoutError:
             status = service.status(node_id)
             message = (f'timed out after {timeout:g} s: node {node_id} is {status.state} '
-                       f'(statusword 0x{status.statusword:04X}, mode {status.mode})'
-                       f'{self._held_for_the_mode(drive)}')
+                       f'(statusword 0x{status.statusword:04X}, mode {status.mode})')
+            held = _halted_for_a_mode(drive)  # before the timeout's halt takes its place
             if halt_on_timeout:  # a motion that did not end in time does not run on
                 message = await self._halt_answered(drive, task, message)
-            return DriveResult(False, message, service.status(node_id))
+            return DriveResult(False, message + self._held_for_the_mode(drive, held),
+                               service.status(node_id))
         except asyncio.CancelledError:
-            reason = (self._reasons.pop(task, SHUTTING_DOWN)
-                      + self._held_for_the_mode(drive))
+            reason = self._reasons.pop(task, SHUTTING_DOWN)
+            held = _halted_for_a_mode(drive)  # before the cancel's halt takes its place
             halting = task in self._halt_when_cancelled
             self._halt_when_cancelled.discard(task)
             # A move replaced before its cancel came halts nothing: the drive is the newer
             # sequence's.
             if halting and self._tasks.get(node_id) is task:
                 reason = await self._halt_answered(drive, task, reason)
-            return DriveResult(False, reason, service.status(node_id))
+            return DriveResult(False, reason + self._held_for_the_mode(drive, held),
+                               service.status(node_id))
         finally:
             self._tokens.pop(task, None)
             if self._tasks.get(node_id) is task:
@@ -338,29 +341,30 @@ class DriveCommands:
 
         The new mode's holding target is read once the axis stands: read while it moves, it
         is where the axis was some milliseconds before the change, and a drive entering CSP
-        would run back to it. An axis whose velocity is within the drive's velocity threshold
-        (0x606F; exactly 0 without one) stands already; another is halted (a halt of a mode
-        change before, replaced or timed out, counts as this one's) and waited for within the
-        command's time (``_until_standing``): a long braking ramp is never cut short. One
+        would run back to it. An axis whose velocity reads 0 stands already; another is
+        halted (a halt of a mode change before, replaced or timed out, counts as this one's)
+        and waited for within the command's time (``_until_standing``): a long braking ramp
+        is never cut short. One
         halted by a halt, a cancelled move or the command timeout stays halted. A drive that
         leaves OPERATION_ENABLED meanwhile ends the command: nothing more is sent to it.
         """
         status = self._service.status(drive.node_id)
         if status.state != cia402.OPERATION_ENABLED:
             return False
-        threshold = await velocity_threshold(drive, SEND_TIMEOUT)
-        ours = drive.halted_by == 'mode change'
+        ours = _halted_for_a_mode(drive)
         halting = not drive.controlword & cia402.HALT
         if halting:
             read = await asyncio.wrap_future(self._service.read_feedback(
                 drive, [cia402.VELOCITY_ACTUAL], SEND_TIMEOUT))
-            if abs(read.get(cia402.VELOCITY_ACTUAL, threshold + 1)) <= threshold:
+            if read.get(cia402.VELOCITY_ACTUAL) == 0:
                 return False
             stopping: Dict[int, int] = {}
             await self._send(drive, {}, halt='mode change', stopping=stopping)
             if stopping:  # a write of its own, as ``_halt`` sends it
                 await self._send(drive, stopping)
             ours = True
+        # Read after the halt went out: a drive slow to answer it must not delay the halt.
+        threshold = await velocity_threshold(drive, SEND_TIMEOUT)
         await self._until_standing(drive, status.mode, threshold, halting)
         return ours
 
@@ -399,12 +403,12 @@ class DriveCommands:
             before = status.position
             await asyncio.sleep(STILL_SPAN)
 
-    def _held_for_the_mode(self, drive) -> str:
-        """Return what an answer adds when its sequence left the axis halted for a mode change.
+    def _held_for_the_mode(self, drive, held: bool) -> str:
+        """Return what an answer adds when its sequence left the axis ``held`` for a mode change.
 
         The drive then needs a fresh enable: a resume would run the old mode's target again.
         """
-        if drive.halted_by != 'mode change':
+        if not held:
             return ''
         self._service.set_enabled(drive, False)
         return HELD_FOR_THE_MODE_CHANGE
@@ -798,6 +802,10 @@ def _check_same_drive(drive, status, bus_down: Optional[str]) -> None:
     problem = lost_problem(drive, reads, status, bus_down)
     if problem:
         raise DriveFailed(problem)
+
+
+def _halted_for_a_mode(drive) -> bool:
+    return drive.halted_by == 'mode change'
 
 
 def _stopped(status) -> bool:
