@@ -204,3 +204,37 @@ def test_a_drive_slow_to_answer_a_setting_is_halted_at_once_for_a_mode_change(ri
     assert 'halted for the mode change' in answer.message, answer.message
     assert axis.drive._controlword & 0x100, 'no halt reached the drive'
     axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis braked to a stand')
+
+
+# Once a defect (a red team's): a resume while a homing braked for its mode change, or while
+# the halt of that homing's timeout braked, released the halt in the old mode: the axis ran
+# up to its old velocity again, and, marked as needing an enable a moment later, was then
+# refused a halt and skipped by the command timeout (8 of 8).
+def test_a_resume_while_the_axis_brakes_for_a_mode_change_is_refused(rig):
+    axis = moving_in_csv(rig, 'combined', LONG_RAMP)
+    speeds = []
+    move = axis.drive._move
+
+    def moving(elapsed: float) -> None:
+        move(elapsed)
+        speeds.append(abs(axis.drive._velocity))
+    axis.drive._move = moving
+    homing = []
+    thread = threading.Thread(target=lambda: homing.append(axis.command('home', timeout=0.3)))
+    thread.start()
+    try:
+        resumes = []
+        for below in (1400, 600):  # braking for the change, then for the timeout's halt
+            axis.drive_reaches(lambda drive, below=below: abs(drive.velocity) < below,
+                               f'the axis braking below {below} counts/s')
+            resumes.append(axis.command('resume'))
+    finally:
+        thread.join()
+    assert [answer.success for answer in resumes] == [False, False], resumes
+    assert all('halted for a mode change' in answer.message for answer in resumes), resumes
+    answer, = homing
+    assert not answer.success and 'halted at position' in answer.message, answer.message
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis at a stand')
+    faster = [(a, b) for a, b in zip(speeds, speeds[1:], strict=False) if b > a + 1]
+    assert not faster, f'the axis sped up again: {faster[:5]}'
+    assert not axis.command('resume').success

@@ -19,6 +19,10 @@ COMMANDS = ('enable', 'disable', 'quick_stop', 'halt', 'resume', 'fault_reset', 
             'home')
 # Commands that act on a drive in OPERATION_ENABLED only.
 ENABLED_COMMANDS = frozenset({'halt', 'resume', 'home'})
+# Why a drive halted for a mode change (``DriveCommands._halt_for_mode``) is not resumed.
+RESUME_REFUSED = ("its axis is halted for a mode change: a resume would run the old mode's "
+                  "target again; wait for that command's answer, or call enable (in the mode "
+                  'wanted) to go on from where it stands')
 # Commands that stop a drive: sent even to one not heard (by SDO: it may be alive, running).
 STOPPING_COMMANDS = frozenset({'quick_stop', 'disable'})
 MODES = tuple(cia402.MODE_NAMES)
@@ -67,8 +71,10 @@ class RequestChecks:
         if refused is not None:
             return refused
         with self._lock:
-            status = shown(self._drives[node_id])
-        problem = command_problem(status, command, mode)
+            drive = self._drives[node_id]
+            status, halted_by = shown(drive), drive.halted_by
+        problem = command_problem(status, command, mode) or (
+            command == 'resume' and halted_by == 'mode change' and RESUME_REFUSED)
         return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
 
     def move(self, node_id: int, position: int, velocity: int) -> Optional[DriveResult]:

@@ -25,7 +25,7 @@ from .arrival import (
     software_limits,
     velocity_threshold,
 )
-from .checks import ENABLED_COMMANDS, lost_problem, state_problem
+from .checks import ENABLED_COMMANDS, lost_problem, RESUME_REFUSED, state_problem
 from .standstill import until_applied_at_sync, wait_for_standstill
 from .status import DriveResult
 
@@ -411,7 +411,10 @@ class DriveCommands:
         if not held:
             return ''
         self._service.set_enabled(drive, False)
-        return HELD_FOR_THE_MODE_CHANGE
+        status = self._service.status(drive.node_id)
+        # A drive that faulted or left OPERATION_ENABLED says what it needs by its state.
+        return HELD_FOR_THE_MODE_CHANGE if status.state == cia402.OPERATION_ENABLED else ''
+
 
     async def _release_held(self, drive, mode: int, held: int) -> None:
         """Release the halt of an axis held where it stands (at ``held`` in a position mode).
@@ -551,6 +554,8 @@ class DriveCommands:
         return f'node {drive.node_id} halted at position {position} (drive units)'
 
     async def _resume(self, drive, _mode: int) -> str:
+        if _halted_for_a_mode(drive):  # since the request was checked
+            raise DriveFailed(f'node {drive.node_id}: {RESUME_REFUSED}; nothing was sent')
         await self._release(drive, {}, halt='')
         return f'node {drive.node_id} resumed'
 
@@ -779,7 +784,9 @@ class DriveCommands:
     async def _halt_after_cancel(self, drive, reason: str) -> str:
         """Halt the drive of a cancelled move; return the answer with where it stopped."""
         try:
-            await self._send(drive, {}, halt='cancel')
+            # One halted for a mode change stays so: no resume may run its old target.
+            await self._send(drive, {}, halt=drive.halted_by if _halted_for_a_mode(drive)
+                             else 'cancel')
             await asyncio.wait_for(self._standstill(drive), HALT_WAIT)
         except (DriveFailed, TimeoutError) as error:
             return f'{reason}; the halt was not confirmed: {error or "no standstill"}'
