@@ -15,6 +15,7 @@ import struct
 
 import pytest
 from test_drive_layouts import writes_on_the_bus
+import test_drive_safety
 from test_drive_safety import ANSWER, DriveRig, NODE, RPDOS, shown, VELOCITY
 
 from cbcan_ros.core.pdo.sync import SYNC_COB_ID
@@ -43,17 +44,7 @@ def synchronous(layout: str) -> tuple:
                  else pdo for pdo in layout_pdos(layout))
 
 
-@pytest.fixture
-def rig(start_node, client_node, start_durand):
-    """Return ``rig(*parameters, pdos=...)``: a DriveRig, closed after the test."""
-    made = []
-
-    def factory(*parameters: str, pdos) -> DriveRig:
-        made.append(DriveRig(start_node, client_node, start_durand, *parameters, pdos=pdos))
-        return made[-1]
-    yield factory
-    for each in made:
-        each.close()
+rig = test_drive_safety.rig  # the node as a child process, the drive here (a fixture)
 
 
 def entries_to_operation_enabled(drive) -> list:

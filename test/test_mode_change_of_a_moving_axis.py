@@ -13,6 +13,7 @@ import struct
 import threading
 
 import pytest
+import test_drive_safety
 from test_drive_safety import ANSWER, DriveRig, NODE
 
 from cbcan_ros.core.drives.commands import STILL_SPAN
@@ -34,17 +35,7 @@ LONG_RAMP = 1000
 WINDOW = 10
 
 
-@pytest.fixture
-def rig(start_node, client_node, start_durand):
-    """Return ``rig(*parameters, pdos=...)``: a DriveRig, closed after the test."""
-    made = []
-
-    def factory(*parameters: str, pdos) -> DriveRig:
-        made.append(DriveRig(start_node, client_node, start_durand, *parameters, pdos=pdos))
-        return made[-1]
-    yield factory
-    for each in made:
-        each.close()
+rig = test_drive_safety.rig  # the node as a child process, the drive here (a fixture)
 
 
 def moving_in_csv(rig, layout: str, ramp: int = 0, window: int = WINDOW) -> DriveRig:
