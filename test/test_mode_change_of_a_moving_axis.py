@@ -229,3 +229,24 @@ def test_a_resume_while_the_axis_brakes_for_a_mode_change_is_refused(rig):
     faster = [(a, b) for a, b in zip(speeds, speeds[1:], strict=False) if b > a + 1]
     assert not faster, f'the axis sped up again: {faster[:5]}'
     assert not axis.command('resume').success
+
+
+# Once a defect (a red team's): a halt while a homing braked for its mode change replaced
+# the homing and named the halt its own; a resume later was then accepted and ran the axis
+# up to its old velocity again (6 of 6).
+def test_a_halt_while_the_axis_brakes_for_a_mode_change_keeps_it_from_a_resume(rig):
+    axis = moving_in_csv(rig, 'combined', LONG_RAMP)
+    homing = []
+    thread = threading.Thread(target=lambda: homing.append(axis.command('home')))
+    thread.start()
+    try:
+        axis.drive_reaches(lambda drive: abs(drive.velocity) < 1400, 'the axis braking')
+        axis.command('halt')
+    finally:
+        thread.join()
+    answer, = homing
+    assert not answer.success, answer.message
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis at a stand')
+    resumed = axis.command('resume')
+    assert not resumed.success, resumed.message
+    assert axis.drive.velocity == 0 and axis.drive._read(MODE) == CSV

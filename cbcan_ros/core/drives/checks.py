@@ -189,7 +189,7 @@ def target_problem(status: DriveStatus, halted_by: str, value: float) -> Optiona
                 f'{NOTHING_SENT}')
     if halted_by == 'mode change':
         return (f'node {status.node_id} is halted for a mode change: targets are taken once '
-                f'the command that changes it has answered (if it failed, call resume); '
+                f'the command that changes it has answered (if it failed, call enable); '
                 f'{NOTHING_SENT}')
     problem = target_value_problem(status.mode, value)
     return f'{problem}; {NOTHING_SENT}' if problem else None

@@ -541,7 +541,9 @@ class DriveCommands:
         # The halt's frames that map the target repeat the stopping one, not an older target
         # the axis has left (moved since by an SDO write, or another master).
         stopping: Dict[int, int] = {}
-        await self._send(drive, {}, halt='command', stopping=stopping)
+        # One halted for a mode change stays so: no resume may run its old mode's target.
+        await self._send(drive, {}, halt=drive.halted_by if _halted_for_a_mode(drive)
+                         else 'command', stopping=stopping)
         if stopping:
             # The halt bit alone leaves a drive that ignores it in a cyclic mode running. A
             # write of its own, after the halt: in one write, a frame carrying the target
