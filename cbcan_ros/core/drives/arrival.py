@@ -12,8 +12,9 @@ whose method homes where the axis stands (35, 37) only when the position is the 
 """
 
 import asyncio
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
 
+from ..sdo.requests import SdoResult
 from . import cia402
 from .objects import decode
 
@@ -34,11 +35,10 @@ async def position_window(drive, timeout: float) -> int:
     otherwise (a timeout) is tried again at the next move, with the default meanwhile.
     """
     if drive.position_window is None:
-        reads = drive.read_wanted
-        result, = await asyncio.wrap_future(drive.objects.read_entries(
-            cia402.POSITION_WINDOW, (0,), timeout))
-        if drive.read_wanted != reads:  # it booted or was lost meanwhile: not kept
+        results = await _read_kept(drive, cia402.POSITION_WINDOW, (0,), timeout)
+        if results is None:
             return DEFAULT_WINDOW
+        result, = results
         if result.success:
             window = decode(cia402.POSITION_WINDOW, result.data)
             drive.position_window = DEFAULT_WINDOW if window == WINDOW_OFF else window
@@ -56,11 +56,10 @@ async def velocity_threshold(drive, timeout: float) -> int:
     change would wait for it again.
     """
     if drive.velocity_threshold is None:
-        reads = drive.read_wanted
-        result, = await asyncio.wrap_future(drive.objects.read_entries(
-            cia402.VELOCITY_THRESHOLD, (0,), timeout))
-        if drive.read_wanted != reads:
+        results = await _read_kept(drive, cia402.VELOCITY_THRESHOLD, (0,), timeout)
+        if results is None:
             return 0
+        result, = results
         drive.velocity_threshold = (decode(cia402.VELOCITY_THRESHOLD, result.data)
                                     if result.success else 0)
     return drive.velocity_threshold
@@ -74,10 +73,8 @@ async def software_limits(drive, timeout: float) -> Optional[Tuple[int, int]]:
     ``LimitsUnknown``: a move is not sent without knowing them.
     """
     if drive.position_limits is None:
-        reads = drive.read_wanted
-        results = await asyncio.wrap_future(drive.objects.read_entries(
-            cia402.SOFTWARE_POSITION_LIMIT, (1, 2), timeout))
-        if drive.read_wanted != reads:  # it booted or was lost meanwhile: the move ends
+        results = await _read_kept(drive, cia402.SOFTWARE_POSITION_LIMIT, (1, 2), timeout)
+        if results is None:  # the move ends
             raise LimitsUnknown(f'node {drive.node_id} booted or was lost while its software '
                                 f'position limits (0x607D) were read; nothing was sent')
         failed = next((result for result in results if not result.success), None)
@@ -91,6 +88,18 @@ async def software_limits(drive, timeout: float) -> Optional[Tuple[int, int]]:
         drive.position_limits = ((lowest, highest) if failed is None and lowest < highest
                                  else ())
     return drive.position_limits or None
+
+
+async def _read_kept(drive, index: int, subindexes: Tuple[int, ...],
+                     timeout: float) -> Optional[List[SdoResult]]:
+    """Read a setting the drive record keeps; None when the drive booted or was lost meanwhile.
+
+    Then what was read is not that drive's: it is not kept.
+    """
+    reads = drive.read_wanted
+    results = await asyncio.wrap_future(drive.objects.read_entries(index, subindexes,
+                                                                   timeout))
+    return results if drive.read_wanted == reads else None
 
 
 class LimitsUnknown(Exception):

@@ -19,7 +19,9 @@ COMMANDS = ('enable', 'disable', 'quick_stop', 'halt', 'resume', 'fault_reset', 
             'home')
 # Commands that act on a drive in OPERATION_ENABLED only.
 ENABLED_COMMANDS = frozenset({'halt', 'resume', 'home'})
-# Why a drive halted for a mode change (``DriveCommands._halt_for_mode``) is not resumed.
+# Who halted a drive before its mode change (``DriveCommands._halt_for_mode``), as
+# ``DriveRecord.halted_by`` names it; and why such a drive is not resumed.
+MODE_CHANGE = 'mode change'
 RESUME_REFUSED = ("its axis is halted for a mode change: a resume would run the old mode's "
                   "target again; wait for that command's answer, or call enable (in the mode "
                   'wanted) to go on from where it stands')
@@ -74,7 +76,7 @@ class RequestChecks:
             drive = self._drives[node_id]
             status, halted_by = shown(drive), drive.halted_by
         problem = command_problem(status, command, mode) or (
-            command == 'resume' and halted_by == 'mode change' and RESUME_REFUSED)
+            command == 'resume' and halted_by == MODE_CHANGE and RESUME_REFUSED)
         return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
 
     def move(self, node_id: int, position: int, velocity: int) -> Optional[DriveResult]:
@@ -187,7 +189,7 @@ def target_problem(status: DriveStatus, halted_by: str, value: float) -> Optiona
     if halted_by == 'command':
         return (f'node {status.node_id} was halted by a halt command: call resume first; '
                 f'{NOTHING_SENT}')
-    if halted_by == 'mode change':
+    if halted_by == MODE_CHANGE:
         return (f'node {status.node_id} is halted for a mode change: targets are taken once '
                 f'the command that changes it has answered (if it failed, call enable); '
                 f'{NOTHING_SENT}')

@@ -25,7 +25,7 @@ from .arrival import (
     software_limits,
     velocity_threshold,
 )
-from .checks import ENABLED_COMMANDS, lost_problem, RESUME_REFUSED, state_problem
+from .checks import ENABLED_COMMANDS, lost_problem, MODE_CHANGE, RESUME_REFUSED, state_problem
 from .standstill import until_applied_at_sync, wait_for_standstill
 from .status import DriveResult
 
@@ -344,9 +344,9 @@ class DriveCommands:
         would run back to it. An axis whose velocity reads 0 stands already; another is
         halted (a halt of a mode change before, replaced or timed out, counts as this one's)
         and waited for within the command's time (``_until_standing``): a long braking ramp
-        is never cut short. One
-        halted by a halt, a cancelled move or the command timeout stays halted. A drive that
-        leaves OPERATION_ENABLED meanwhile ends the command: nothing more is sent to it.
+        is never cut short. One halted by a halt, a cancelled move or the command timeout
+        stays halted. A drive that leaves OPERATION_ENABLED meanwhile ends the command:
+        nothing more is sent to it.
         """
         status = self._service.status(drive.node_id)
         if status.state != cia402.OPERATION_ENABLED:
@@ -359,7 +359,7 @@ class DriveCommands:
             if read.get(cia402.VELOCITY_ACTUAL) == 0:
                 return False
             stopping: Dict[int, int] = {}
-            await self._send(drive, {}, halt='mode change', stopping=stopping)
+            await self._send(drive, {}, halt=MODE_CHANGE, stopping=stopping)
             if stopping:  # a write of its own, as ``_halt`` sends it
                 await self._send(drive, stopping)
             ours = True
@@ -414,7 +414,6 @@ class DriveCommands:
         status = self._service.status(drive.node_id)
         # A drive that faulted or left OPERATION_ENABLED says what it needs by its state.
         return HELD_FOR_THE_MODE_CHANGE if status.state == cia402.OPERATION_ENABLED else ''
-
 
     async def _release_held(self, drive, mode: int, held: int) -> None:
         """Release the halt of an axis held where it stands (at ``held`` in a position mode).
@@ -541,9 +540,7 @@ class DriveCommands:
         # The halt's frames that map the target repeat the stopping one, not an older target
         # the axis has left (moved since by an SDO write, or another master).
         stopping: Dict[int, int] = {}
-        # One halted for a mode change stays so: no resume may run its old mode's target.
-        await self._send(drive, {}, halt=drive.halted_by if _halted_for_a_mode(drive)
-                         else 'command', stopping=stopping)
+        await self._send(drive, {}, halt='command', stopping=stopping)
         if stopping:
             # The halt bit alone leaves a drive that ignores it in a cyclic mode running. A
             # write of its own, after the halt: in one write, a frame carrying the target
@@ -786,9 +783,7 @@ class DriveCommands:
     async def _halt_after_cancel(self, drive, reason: str) -> str:
         """Halt the drive of a cancelled move; return the answer with where it stopped."""
         try:
-            # One halted for a mode change stays so: no resume may run its old target.
-            await self._send(drive, {}, halt=drive.halted_by if _halted_for_a_mode(drive)
-                             else 'cancel')
+            await self._send(drive, {}, halt='cancel')
             await asyncio.wait_for(self._standstill(drive), HALT_WAIT)
         except (DriveFailed, TimeoutError) as error:
             return f'{reason}; the halt was not confirmed: {error or "no standstill"}'
@@ -814,7 +809,7 @@ def _check_same_drive(drive, status, bus_down: Optional[str]) -> None:
 
 
 def _halted_for_a_mode(drive) -> bool:
-    return drive.halted_by == 'mode change'
+    return drive.halted_by == MODE_CHANGE
 
 
 def _stopped(status) -> bool:

@@ -413,7 +413,8 @@ class DriveService:
         Nothing when the drive was read again since ``reads`` (``checks.lost_problem``), or
         with ``enabled`` when it is no longer enabled by us: a step of a move or a halt would
         enable one that stopped itself. ``halt``: set the halt bit (naming who, as
-        ``set_halted``) or release it ('') with them, shown only past those checks. A release
+        ``set_halted``; one halted for a mode change keeps that name) or release it ('') with
+        them, shown only past those checks. A release
         restarts the command timeout in the same step, so no timeout halt comes between (it
         would stay shown, and stop later ones). ``by_sdo``: whatever the PDOs map.
         ``stopping``: filled with the target that stops the axis in its mode
@@ -437,7 +438,10 @@ class DriveService:
                     stopping.update(safety.stopping_target(drive, status, self.settings,
                                                            commanded))
                 if halt is not None:
-                    self.set_halted(drive, halt)
+                    # A drive halted for a mode change stays so until released: a resume
+                    # would run its old mode's target (``checks.RESUME_REFUSED``).
+                    self.set_halted(drive, drive.halted_by if halt and drive.halted_by
+                                    == checks.MODE_CHANGE else halt)
                     if not halt:
                         drive.last_target = time.monotonic()
                     word = (drive.controlword | cia402.HALT if halt
