@@ -13,16 +13,18 @@ import struct
 import threading
 
 import pytest
+from rclpy.action import ActionClient
 import test_drive_safety
-from test_drive_safety import ANSWER, DriveRig, NODE
+from test_drive_safety import ANSWER, COMMAND_TIMEOUT, DriveRig, NODE
 
+from cbcan_ros.action import DriveMove
 from cbcan_ros.core.drives.commands import STILL_SPAN
 from cbcan_ros.simulation.cia402_states import State
 from cbcan_ros.simulation.durand.device import DurandDevice
 from cbcan_ros.simulation.durand.drive_objects import PROFILE_ACCELERATION
 from cbcan_ros.simulation.durand.drive_pdos import drive_pdos as layout_pdos
 
-from conftest import wait_until
+from conftest import wait_for_future, wait_until
 
 PP, PV, CSP, CSV = 1, 3, 8, 9
 MODE, TARGET_POSITION, CONTROLWORD, POSITION_WINDOW = 0x6060, 0x607A, 0x6040, 0x6067
@@ -241,12 +243,42 @@ def test_a_halt_while_the_axis_brakes_for_a_mode_change_keeps_it_from_a_resume(r
     thread.start()
     try:
         axis.drive_reaches(lambda drive: abs(drive.velocity) < 1400, 'the axis braking')
-        axis.command('halt')
+        halted = axis.command('halt')
     finally:
         thread.join()
     answer, = homing
     assert not answer.success, answer.message
+    # Once a defect (a red team's): the homing, replaced, marked the drive as needing an
+    # enable after the halt had begun, and the halt failed with "it left OPERATION_ENABLED,
+    # or was stopped", which had not happened (6 of 6).
+    assert halted.success and 'halted for the mode change' in halted.message, halted.message
     axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis at a stand')
     resumed = axis.command('resume')
     assert not resumed.success, resumed.message
     assert axis.drive.velocity == 0 and axis.drive._read(MODE) == CSV
+
+
+# Once a defect (a red team's): a move sent while another braked for its mode change
+# replaced it, and the replaced move then marked the drive as needing an enable: the new move
+# failed with "it left OPERATION_ENABLED, or was stopped", which had not happened. The new
+# move takes over the braking, and goes on in profile position from where the axis stands.
+def test_a_move_while_another_brakes_for_its_mode_change_takes_over_and_arrives(rig):
+    axis = moving_in_csv(rig, 'combined', LONG_RAMP)
+    mover = ActionClient(axis.client_node, DriveMove, f'{axis.name}/move')
+    assert mover.wait_for_server(timeout_sec=ANSWER)
+
+    def goal(position: float):
+        handle = wait_for_future(mover.send_goal_async(DriveMove.Goal(
+            node_id=NODE, position=position, velocity=500.0)), ANSWER)
+        assert handle.accepted
+        return handle
+    first = goal(axis.drive.position + 100000.0)
+    axis.drive_reaches(lambda drive: abs(drive.velocity) < 1400, 'the axis braking')
+    second = goal(axis.drive.position + 1500.0)  # ahead: braking takes about 1000 counts
+    replaced = wait_for_future(first.get_result_async(), COMMAND_TIMEOUT).result
+    assert not replaced.success and 'replaced' in replaced.message, replaced.message
+    assert 'held there' not in replaced.message, replaced.message
+    done = wait_for_future(second.get_result_async(), COMMAND_TIMEOUT + ANSWER).result
+    assert done.success, done.message
+    assert axis.drive._read(MODE) == PP and axis.drive.velocity == 0
+    assert abs(done.position - axis.drive._read(TARGET_POSITION)) <= WINDOW

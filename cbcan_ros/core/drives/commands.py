@@ -163,7 +163,9 @@ class DriveCommands:
             async with asyncio.timeout(timeout or None) as limit:
                 TIME_LIMIT.set(limit)
                 message = await sequence()
-            return DriveResult(True, message, service.status(node_id))
+            # A halt, or a fault_reset with no fault, during another's braking keeps its mark.
+            held = self._held_for_the_mode(drive, _halted_for_a_mode(drive))
+            return DriveResult(True, message + held, service.status(node_id))
         except DriveFailed as failure:
             held = self._held_for_the_mode(drive, _halted_for_a_mode(drive))
             return DriveResult(False, f'{failure}{held}', service.status(node_id),
@@ -407,8 +409,11 @@ class DriveCommands:
         """Return what an answer adds when its sequence left the axis ``held`` for a mode change.
 
         The drive then needs a fresh enable: a resume would run the old mode's target again.
+        A sequence a newer one replaced leaves that to the newer one, which has the drive
+        now: a move, homing, set_mode or enable goes on from the halt, a stop ends it, and
+        any other keeps it and says so when it ends.
         """
-        if not held:
+        if not held or self._tasks.get(drive.node_id) is not asyncio.current_task():
             return ''
         self._service.set_enabled(drive, False)
         status = self._service.status(drive.node_id)
