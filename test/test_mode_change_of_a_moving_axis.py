@@ -15,7 +15,7 @@ import threading
 import pytest
 from rclpy.action import ActionClient
 import test_drive_safety
-from test_drive_safety import ANSWER, COMMAND_TIMEOUT, DriveRig, NODE
+from test_drive_safety import ANSWER, COMMAND_TIMEOUT, DriveRig, NODE, VELOCITY
 
 from cbcan_ros.action import DriveMove
 from cbcan_ros.core.drives.commands import STILL_SPAN
@@ -282,3 +282,48 @@ def test_a_move_while_another_brakes_for_its_mode_change_takes_over_and_arrives(
     assert done.success, done.message
     assert axis.drive._read(MODE) == PP and axis.drive.velocity == 0
     assert abs(done.position - axis.drive._read(TARGET_POSITION)) <= WINDOW
+
+
+# Once a defect (a red team's): a set_mode replaced by a set_mode during the braking gave the
+# drive back enabled, late, in the middle of the newer one, which had marked it. A target
+# every millisecond slipped in as that released the axis; the newer set_mode then answered
+# "it takes targets after an enable", so the command timeout no longer watched the axis, and
+# halt and resume were refused: the axis ran on at that target (4 of 4).
+def test_a_set_mode_replacing_one_under_way_gives_the_drive_back_still_watched(rig):
+    axis = rig('-p', 'drives.command_timeout:=0.5', pdos=layout_pdos('combined'))
+    stream = axis.enable_moving()
+    stream.PERIOD = 0.001  # a target every millisecond: one taken mid-change would show
+    axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', LONG_RAMP))
+    first = []
+    thread = threading.Thread(target=lambda: first.append(axis.command('set_mode', CSP)))
+    thread.start()
+    try:
+        axis.drive_reaches(lambda drive: abs(drive.velocity) < 1400, 'the axis braking')
+        second = axis.command('set_mode', CSV)
+    finally:
+        thread.join()
+    assert not first[0].success and 'replaced' in first[0].message, first[0].message
+    assert second.success and 'enable' not in second.message, second.message
+    axis.drive_reaches(lambda drive: drive.velocity == VELOCITY, 'the stream followed again')
+    axis.stop_streams()
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the command timeout halting it')
+
+
+# Once a defect (a red team's): a set_mode to the mode the axis was braking in, for a
+# set_mode it replaced, answered at once that the axis was held there, while it still ran
+# at 1200 counts/s.
+def test_a_set_mode_to_the_mode_it_brakes_in_answers_once_the_axis_stands(rig):
+    axis = moving_in_csv(rig, 'combined', LONG_RAMP)
+    first = []
+    thread = threading.Thread(target=lambda: first.append(axis.command('set_mode', CSP)))
+    thread.start()
+    try:
+        axis.drive_reaches(lambda drive: abs(drive.velocity) < 1400, 'the axis braking')
+        second = axis.command('set_mode', CSV)
+        velocity = axis.drive.velocity
+    finally:
+        thread.join()
+    assert second.success and 'held' not in second.message, second.message
+    assert abs(velocity) <= WINDOW / STILL_SPAN, f'answered at velocity {velocity}'
+    assert axis.drive._read(MODE) == CSV
+    wait_until(lambda: not axis.latest().halted, ANSWER, 'drive_state not halted')

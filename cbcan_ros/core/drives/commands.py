@@ -83,6 +83,7 @@ class DriveCommands:
         self._halt_when_cancelled: set = set()
         self._set_points: Dict[int, int] = {}
         self._streams: Dict[int, asyncio.Task] = {}  # by drive: its last set-point stream
+        self._mode_changes: set = set()  # the set_mode sequences running
 
     async def run(self, drive, command: str, mode: int, timeout: float,
                   reads: Optional[int]):
@@ -95,7 +96,8 @@ class DriveCommands:
         sequence = getattr(self, f'_{command}')
         return await self._own(drive, lambda: sequence(drive, mode), timeout, reads,
                                enabled=command in ENABLED_COMMANDS,
-                               halt_on_timeout=command == 'home')
+                               halt_on_timeout=command == 'home',
+                               changes_mode=command == 'set_mode')
 
     async def move(self, drive, position: int, relative: bool, velocity: int,
                    on_feedback: Optional[Callable], token: object, reads: int,
@@ -144,7 +146,7 @@ class DriveCommands:
 
     async def _own(self, drive, sequence: Callable, timeout: Optional[float],
                    reads: Optional[int], token: object = None, enabled: bool = False,
-                   halt_on_timeout: bool = False):
+                   halt_on_timeout: bool = False, changes_mode: bool = False):
         task = asyncio.current_task()
         previous = self._tasks.get(drive.node_id)
         if previous is not None and not previous.done():
@@ -153,6 +155,10 @@ class DriveCommands:
             replaced = 'replaced by a newer command, move or target'
             self._reasons[previous] = f'{earlier}; {replaced}' if earlier else replaced
             previous.cancel()
+            if previous in self._mode_changes and not changes_mode:
+                # Now, not when the set_mode ends (later): the command replacing it needs
+                # the drive as it was before (a halt, a move); a set_mode takes it over.
+                self._service.set_enabled(drive, self._still_enabled(drive, True))
         self._tasks[drive.node_id] = task
         self._tokens[task] = token
         READS_AT_START.set(reads)  # this task's own context
@@ -327,7 +333,10 @@ class DriveCommands:
         """
         halted_here = False
         if hold is None:
-            halted_here = not self._shows_mode(drive, mode) and await self._halt_for_mode(drive)
+            # An axis a replaced command halted for its mode change is waited for all the
+            # same: the new mode may be the one it is braking in.
+            halted_here = ((not self._shows_mode(drive, mode) or _halted_for_a_mode(drive))
+                           and await self._halt_for_mode(drive))
             hold = await self._hold(drive, mode)
         self._service.keep_state(drive)  # after the wait for the axis: it may have stopped
         if hold:
@@ -476,7 +485,7 @@ class DriveCommands:
         if self._service.status(drive.node_id).state != cia402.OPERATION_ENABLED:
             drive.pp_goal = None  # enabled afresh, a drive takes where it stands as its base
         mode = mode or self._service.status(drive.node_id).mode
-        if not self._shows_mode(drive, mode):
+        if not self._shows_mode(drive, mode) or _halted_for_a_mode(drive):
             await self._halt_for_mode(drive)
         elif (drive.controlword & cia402.HALT
                 and self._service.status(drive.node_id).state == cia402.OPERATION_ENABLED):
@@ -598,17 +607,26 @@ class DriveCommands:
         # No target of the old mode may be taken as one of the new (the drive shows the new
         # mode before the release): refused until the answer. One that fails with the axis
         # halted for it leaves the drive to a fresh enable (``_held_for_the_mode``); one that
-        # failed to halt it leaves it as it was, the command timeout watching it.
-        enabled = not self._service.status(drive.node_id).needs_enable
-        self._service.set_enabled(drive, False, changing_mode=True)
+        # failed to halt it leaves it as it was, the command timeout watching it. Marked
+        # ``changing_mode`` only when it was enabled: a set_mode replacing this one takes
+        # that over, and gives the drive back enabled as this one would have.
+        status = self._service.status(drive.node_id)
+        enabled = not status.needs_enable or status.changing_mode
+        self._service.set_enabled(drive, False, changing_mode=enabled)
+        task = asyncio.current_task()
+        self._mode_changes.add(task)
         try:
             hold = await self._change_mode(drive, mode)
             if hold is not None:
                 await self._release_held(drive, mode, hold.get(cia402.TARGET_POSITION, 0))
         except BaseException:
-            # Halted for it, the drive needs a fresh enable all the same (``_own``).
-            self._service.set_enabled(drive, self._still_enabled(drive, enabled))
+            # Halted for it, the drive needs a fresh enable all the same (``_own``). Replaced,
+            # the drive is the newer command's, which had it given back (``_own``).
+            if self._tasks.get(drive.node_id) is task:
+                self._service.set_enabled(drive, self._still_enabled(drive, enabled))
             raise
+        finally:
+            self._mode_changes.discard(task)
         enabled = self._still_enabled(drive, enabled)
         self._service.set_enabled(drive, enabled)
         status = self._service.status(drive.node_id)
@@ -619,7 +637,8 @@ class DriveCommands:
     def _still_enabled(self, drive, enabled: bool) -> bool:
         """Return ``enabled``, unless the drive needs a fresh enable since set_mode began.
 
-        It left OPERATION_ENABLED, faulted, booted or was stopped meanwhile.
+        It left OPERATION_ENABLED, faulted, booted or was stopped meanwhile (each clears
+        ``changing_mode``).
         """
         return enabled and self._service.status(drive.node_id).changing_mode
 
