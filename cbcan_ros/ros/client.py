@@ -22,7 +22,6 @@ in time, :class:`GatewayUnavailable`. A value that does not fit its type raises 
 from dataclasses import dataclass
 from typing import Dict, List, NamedTuple, Optional, Sequence, Union
 
-from rclpy.action import ActionClient
 from rclpy.node import Node
 
 from ..action import ProgramDownload
@@ -33,6 +32,7 @@ from ..msg import BootStates, NodeStates, SdoAccess
 from ..srv import Boot, NmtCommand, NmtState, SdoBatch, SdoRead, SdoWrite
 from .boot import BOOT_STATES_QOS
 from .interface import NODE_STATES_QOS
+from .rclpy_gaps import FeedbackFirstActionClient
 from .service_caller import (
     ANSWER_MARGIN,
     awaitable,
@@ -163,7 +163,7 @@ class GatewayClient(ServiceCaller):
     def __init__(self, node: Node, gateway: str = DEFAULT_GATEWAY, wait: float = DEFAULT_WAIT):
         super().__init__(node, gateway, wait)
         self._latest: Dict[str, List] = {}  # topic: the messages kept (the newest last)
-        self._downloads: Optional[ActionClient] = None
+        self._downloads: Optional[FeedbackFirstActionClient] = None
 
     def subscribe_states(self, callback):
         """Call ``callback(NodeStates)`` on ``node``'s executor for every state change.
@@ -332,7 +332,7 @@ class GatewayClient(ServiceCaller):
         """
         with self._lock:
             if self._downloads is None:
-                self._downloads = ActionClient(self._own, ProgramDownload,
+                self._downloads = FeedbackFirstActionClient(self._own, ProgramDownload,
                                                f'{self.gateway}/program_download')
             action = self._downloads
         if not (yield self._when(action.server_is_ready, self.wait)):

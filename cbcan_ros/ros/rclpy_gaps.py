@@ -18,6 +18,10 @@ in docs/library_gaps.md:
 6. An answer the middleware dropped (rmw_fastrtps gives up on a caller whose answer reader
    it has not matched yet) is reported only as a ``RuntimeWarning``, and the default warning
    filter shows it once per process: :func:`send_or_report_dropped` says whether an answer left.
+7. An action client takes one feedback message a wake and handles a result taken with it
+   first, then forgets the goal's feedback callback: feedback the server sent before its
+   result, still waiting when the result is taken (a busy client), is lost.
+   :class:`FeedbackFirstActionClient` hands the goal all of it before its result.
 """
 
 import re
@@ -25,6 +29,7 @@ import threading
 from typing import Callable, Dict
 import warnings
 
+from rclpy.action import ActionClient
 from rclpy.exceptions import InvalidHandle
 from rclpy.lifecycle import LifecycleNode
 from rclpy.node import Node
@@ -149,3 +154,32 @@ def refuse_unavailable_transitions(node: LifecycleNode) -> None:
 def parameter_overrides(node: Node) -> Dict[str, Parameter]:
     """Return the parameter values ``node`` was given (-p, parameter files), declared or not."""
     return getattr(node, '_parameter_overrides', {})
+
+
+class FeedbackFirstActionClient(ActionClient):
+    """An ``ActionClient`` that calls a goal's feedback callback before its result is set.
+
+    With a result, every feedback message waiting in the reader is taken too, and all are
+    handed over, in order, before the result; rclpy's own would drop them.
+    """
+
+    def take_data(self):
+        """Take what rclpy takes, and with a result every feedback message waiting."""
+        data = super().take_data()
+        feedback = [data.pop('feedback')] if 'feedback' in data else []
+        if feedback or 'result' in data:
+            while True:
+                message = self._client_handle.take_feedback(
+                    self._action_type.Impl.FeedbackMessage)
+                if message is None:
+                    break
+                feedback.append(message)
+        if feedback:
+            data['feedback_messages'] = feedback
+        return data
+
+    async def execute(self, taken_data):
+        """Hand over the feedback taken, then the rest as rclpy does."""
+        for message in taken_data.pop('feedback_messages', ()):
+            await super().execute({'feedback': message})
+        await super().execute(taken_data)

@@ -10,9 +10,8 @@ import sys
 import threading
 from typing import Callable, Optional, Tuple
 
-from rclpy.action import ActionClient
-
 from ..client import PRESENCE_CHECK
+from ..rclpy_gaps import FeedbackFirstActionClient
 from ..service_caller import ANSWER_MARGIN, GatewayUnavailable
 from .standalone_client import Client
 
@@ -56,7 +55,7 @@ def follow_goal(client: Client, action_type, name: str, goal,
     messages ("move of node 7"), ``left_running`` says what a cancel left unanswered may have
     left. Raises GatewayUnavailable when no gateway takes or answers the goal.
     """
-    action = ActionClient(client.node, action_type, f'{client.gateway}/{name}')
+    action = FeedbackFirstActionClient(client.node, action_type, f'{client.gateway}/{name}')
     try:
         with Interrupts() as interrupts, client.spinning() as spin_until:
             if not spin_until(lambda: action.server_is_ready() or interrupts.count,
