@@ -165,7 +165,9 @@ class DriveCommands:
         ENABLED_ONLY.set(enabled)
         service, node_id = self._service, drive.node_id
         try:
-            # In this task (not wait_for's own): a cancel reaches the sequence at once.
+            # In this task (not wait_for's own): a cancel reaches the sequence at once, and
+            # what the sequence raises as it is cancelled is the sequence's (every wait of a
+            # sequence is timed so: an exception of wait_for's task would go unretrieved).
             async with asyncio.timeout(timeout or None) as limit:
                 TIME_LIMIT.set(limit)
                 message = await sequence()
@@ -492,7 +494,8 @@ class DriveCommands:
             # Held where it stands, not where it slows. A velocity read may never be exactly
             # 0: waited for, then the axis is held where it is.
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._standstill(drive, False), STANDSTILL_WAIT)
+                async with asyncio.timeout(STANDSTILL_WAIT):
+                    await self._standstill(drive, False)
         hold = await self._hold(drive, mode)
         held = hold.get(cia402.TARGET_POSITION, 0)
         if not self._shows_mode(drive, mode):
@@ -808,7 +811,8 @@ class DriveCommands:
         """Halt the drive of a cancelled move; return the answer with where it stopped."""
         try:
             await self._send(drive, {}, halt='cancel')
-            await asyncio.wait_for(self._standstill(drive), HALT_WAIT)
+            async with asyncio.timeout(HALT_WAIT):
+                await self._standstill(drive)
         except (DriveFailed, TimeoutError) as error:
             return f'{reason}; the halt was not confirmed: {error or "no standstill"}'
         await self._read_position(drive)

@@ -59,8 +59,9 @@ async def wait_for_standstill(service, drive, until: Callable, read_timeout: flo
         read = await asyncio.wrap_future(service.read_feedback(drive, STANDSTILL_READS,
                                                                read_timeout))
         with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(until(drive, _standing_since(
-                drive, read, service.status(drive.node_id).mode)), REREAD)
+            async with asyncio.timeout(REREAD):
+                await until(drive, _standing_since(drive, read,
+                                                   service.status(drive.node_id).mode))
             return
 
 
