@@ -77,11 +77,12 @@ clean-can-msgs:
 # The `pytest` executable (not `python -m pytest`) leaves the working directory
 # off sys.path, so the source cbcan_ros/ (no generated msg/srv) cannot shadow
 # the installed package.
-# Two worker processes (pytest-xdist): most tests wait on devices, timeouts and node
-# processes, so two workers halve the time on 2 cores. The tests that load both cores by
-# themselves (conftest.HEAVY) share one worker, one after another.
+# Four worker processes (pytest-xdist) on 2 cores: most tests wait on devices, timeouts and
+# node processes (with two workers the suite kept the cores busy about a third of its 12.5
+# minutes), so four take about half the time. The tests that load both cores by themselves
+# (conftest.HEAVY) share one worker, one after another.
 test: build
-	$(ROS_ENV) pytest -q -n 2 --dist loadgroup $(ROOT)/test $(ARGS)
+	$(ROS_ENV) pytest -q -n 4 --dist loadgroup $(ROOT)/test $(ARGS)
 
 # The repository built as a ROS user would (a fresh workspace, a plain `colcon build`), and
 # the node run from that install: tools/colcon-smoke.
