@@ -85,7 +85,7 @@ DEFAULT_DEVICES = [2, 3, 5]
 
 
 # Tests that load both cores by themselves (bursts of a thousand calls, a 2,000-call
-# shutdown, 66 concurrent callers, the soak): `make test` runs two workers with
+# shutdown, 66 concurrent callers, the soak): `make test` runs four workers with
 # `--dist loadgroup`, which sends them all to one worker, so no two of them overlap and
 # their time bounds stay fair.
 HEAVY = pytest.mark.xdist_group('heavy')
