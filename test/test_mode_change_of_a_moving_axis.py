@@ -67,6 +67,23 @@ def entering_csp(drive) -> list:
     return entering
 
 
+def during_the_braking(axis: DriveRig, first: tuple, then: tuple):
+    """Call ``first`` (command, mode); once the axis brakes for it, ``then``.
+
+    Return their answers and the axis's velocity as ``then`` was answered.
+    """
+    answers = []
+    thread = threading.Thread(target=lambda: answers.append(axis.command(*first)))
+    thread.start()
+    try:
+        axis.drive_reaches(lambda drive: abs(drive.velocity) < 1400, 'the axis braking')
+        later = axis.command(*then)
+        velocity = axis.drive.velocity
+    finally:
+        thread.join()
+    return answers[0], later, velocity
+
+
 # Once a defect (a red team's): a mode change of an axis moving in CSV read where it stood by
 # SDO, then sent that as the CSP target and the mode: the axis had moved on meanwhile (270 ms
 # once, on a busy machine), and the drive entering CSP ran back to where it had been. Then,
@@ -238,15 +255,7 @@ def test_a_resume_while_the_axis_brakes_for_a_mode_change_is_refused(rig):
 # up to its old velocity again (6 of 6).
 def test_a_halt_while_the_axis_brakes_for_a_mode_change_keeps_it_from_a_resume(rig):
     axis = moving_in_csv(rig, 'combined', LONG_RAMP)
-    homing = []
-    thread = threading.Thread(target=lambda: homing.append(axis.command('home')))
-    thread.start()
-    try:
-        axis.drive_reaches(lambda drive: abs(drive.velocity) < 1400, 'the axis braking')
-        halted = axis.command('halt')
-    finally:
-        thread.join()
-    answer, = homing
+    answer, halted, _ = during_the_braking(axis, ('home',), ('halt',))
     assert not answer.success, answer.message
     # Once a defect (a red team's): the homing, replaced, marked the drive as needing an
     # enable after the halt had begun, and the halt failed with "it left OPERATION_ENABLED,
@@ -294,15 +303,8 @@ def test_a_set_mode_replacing_one_under_way_gives_the_drive_back_still_watched(r
     stream = axis.enable_moving()
     stream.PERIOD = 0.001  # a target every millisecond: one taken mid-change would show
     axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', LONG_RAMP))
-    first = []
-    thread = threading.Thread(target=lambda: first.append(axis.command('set_mode', CSP)))
-    thread.start()
-    try:
-        axis.drive_reaches(lambda drive: abs(drive.velocity) < 1400, 'the axis braking')
-        second = axis.command('set_mode', CSV)
-    finally:
-        thread.join()
-    assert not first[0].success and 'replaced' in first[0].message, first[0].message
+    first, second, _ = during_the_braking(axis, ('set_mode', CSP), ('set_mode', CSV))
+    assert not first.success and 'replaced' in first.message, first.message
     assert second.success and 'enable' not in second.message, second.message
     axis.drive_reaches(lambda drive: drive.velocity == VELOCITY, 'the stream followed again')
     axis.stop_streams()
@@ -314,15 +316,7 @@ def test_a_set_mode_replacing_one_under_way_gives_the_drive_back_still_watched(r
 # at 1200 counts/s.
 def test_a_set_mode_to_the_mode_it_brakes_in_answers_once_the_axis_stands(rig):
     axis = moving_in_csv(rig, 'combined', LONG_RAMP)
-    first = []
-    thread = threading.Thread(target=lambda: first.append(axis.command('set_mode', CSP)))
-    thread.start()
-    try:
-        axis.drive_reaches(lambda drive: abs(drive.velocity) < 1400, 'the axis braking')
-        second = axis.command('set_mode', CSV)
-        velocity = axis.drive.velocity
-    finally:
-        thread.join()
+    _, second, velocity = during_the_braking(axis, ('set_mode', CSP), ('set_mode', CSV))
     assert second.success and 'held' not in second.message, second.message
     assert abs(velocity) <= WINDOW / STILL_SPAN, f'answered at velocity {velocity}'
     assert axis.drive._read(MODE) == CSV
