@@ -12,14 +12,17 @@ synchronous RPDOs too, from every state enable starts in.
 from dataclasses import replace
 import itertools
 import struct
+import threading
 
 import pytest
+from std_msgs.msg import Float64
 from test_drive_layouts import writes_on_the_bus
 import test_drive_safety
 from test_drive_safety import ANSWER, DriveRig, NODE, RPDOS, shown, VELOCITY
 
 from cbcan_ros.core.pdo.sync import SYNC_COB_ID
 from cbcan_ros.simulation.cia402_states import State
+from cbcan_ros.simulation.durand.drive_objects import PROFILE_ACCELERATION
 from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
 from cbcan_ros.simulation.durand.drive_pdos import drive_pdos as layout_pdos
 from cbcan_ros.simulation.simulated_drives import LAYOUTS
@@ -221,3 +224,51 @@ def test_a_mode_change_of_a_drive_that_quick_stopped_by_itself_starts_no_motion(
     if command == 'set_mode':
         assert axis.drive.drive_state == 'QUICK_STOP_ACTIVE'
 
+
+
+# Once a defect (a red team's finding, read in the code): an enable of an axis still braking
+# from a halt waited half a second, then held it at the position read then and released the
+# halt. A drive that ramps its halt in CSP stopped short of the ramp's end, at speed, and ran
+# back to that position.
+def test_an_enable_of_an_axis_braking_from_a_halt_releases_it_standing(rig):
+    axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos('combined'))
+    drive = axis.drive
+    axis.wait_state('SWITCH_ON_DISABLED')
+    axis.nmt_start()
+    assert axis.command('enable', CSP).success
+    wait_until(lambda: axis.publisher.get_subscription_count() > 0, ANSWER, 'a subscriber')
+    drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', 1000))  # 1.5 s from VELOCITY
+    released, halted = [], [False]
+    move = drive._move
+
+    def moving(elapsed: float) -> None:
+        if halted[0] and not drive._halted:
+            released.append(drive._velocity)
+        halted[0] = drive._halted
+        move(elapsed)
+    drive._move = moving
+    stop = threading.Event()
+
+    def run_ahead() -> None:  # CSP set-points VELOCITY counts/s ahead, until halted
+        position = float(drive.position)
+        while not stop.wait(0.01):
+            position += VELOCITY * 0.01
+            axis.publisher.publish(Float64(data=position))
+    streaming = threading.Thread(target=run_ahead)
+    streaming.start()
+    halting = []
+    try:
+        axis.drive_reaches(lambda drive: drive.velocity > 1000, 'the axis running in CSP')
+        halter = threading.Thread(target=lambda: halting.append(axis.command('halt')))
+        halter.start()
+        axis.drive_reaches(lambda drive: drive._halted and abs(drive.velocity) < 1000,
+                           'the axis braking')
+        stop.set()
+        enabled = axis.command('enable', CSP)
+        halter.join()
+    finally:
+        stop.set()
+        streaming.join()
+    assert enabled.success, enabled.message
+    wait_until(lambda: released, ANSWER, "the drive's first cycle with the halt released")
+    assert abs(released[0]) <= 100, f'released at velocity {released[0]}'

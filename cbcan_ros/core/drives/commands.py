@@ -33,8 +33,6 @@ from .status import DriveResult
 SEND_TIMEOUT = 1.0
 # How long a cancelled move waits for the halted axis to stand still before it answers.
 HALT_WAIT = 2.0
-# How long enable waits for a halted axis to stand before it holds it where it is.
-STANDSTILL_WAIT = 0.5
 # How long enable waits for the drive's PDO mapping being read (``mapping_known``).
 MAPPING_WAIT = 2.0
 # Before a mode change, in a cyclic mode or profile torque, an axis of a drive without a
@@ -396,8 +394,8 @@ class DriveCommands:
                                        or ok(s))
             if status.state != cia402.OPERATION_ENABLED:
                 raise DriveFailed(f'node {drive.node_id} left OPERATION_ENABLED ({status.state})'
-                                  f' while it braked for the mode change; nothing more was '
-                                  f'sent')
+                                  f' while it braked (for the mode change or the enable); '
+                                  f'nothing more was sent')
             return status
         if mode in SHOWS_STANDSTILL:
             await wait_for_standstill(self._service, drive, until, SEND_TIMEOUT, halting)
@@ -487,15 +485,12 @@ class DriveCommands:
         if self._service.status(drive.node_id).state != cia402.OPERATION_ENABLED:
             drive.pp_goal = None  # enabled afresh, a drive takes where it stands as its base
         mode = mode or self._service.status(drive.node_id).mode
-        if not self._shows_mode(drive, mode) or _halted_for_a_mode(drive):
+        if not self._shows_mode(drive, mode) or drive.controlword & cia402.HALT:
+            # Held where it stands, not where it slows: an axis braking (for a mode change,
+            # a halt, a cancelled move, the command timeout) is waited for as a mode change
+            # waits, within the command's time. Released earlier, a drive that ramps its halt
+            # in CSP would stop short of the ramp's end, and run back to the position read.
             await self._halt_for_mode(drive)
-        elif (drive.controlword & cia402.HALT
-                and self._service.status(drive.node_id).state == cia402.OPERATION_ENABLED):
-            # Held where it stands, not where it slows. A velocity read may never be exactly
-            # 0: waited for, then the axis is held where it is.
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(STANDSTILL_WAIT):
-                    await self._standstill(drive, False)
         hold = await self._hold(drive, mode)
         held = hold.get(cia402.TARGET_POSITION, 0)
         if not self._shows_mode(drive, mode):
