@@ -16,6 +16,7 @@ import pytest
 from rclpy.action import ActionClient
 import test_drive_safety
 from test_drive_safety import ANSWER, COMMAND_TIMEOUT, DriveRig, NODE, VELOCITY
+from test_enable_holds_the_axis import synchronous
 
 from cbcan_ros.action import DriveMove
 from cbcan_ros.core.drives.commands import STILL_SPAN
@@ -43,9 +44,14 @@ rig = test_drive_safety.rig  # the node as a child process, the drive here (a fi
 def moving_in_csv(rig, layout: str, ramp: int = 0, window: int = WINDOW) -> DriveRig:
     """Return a rig whose axis runs in CSV at VELOCITY with no stream.
 
-    ``ramp``: its 0x6083 (the simulated drive brakes a halt with it); ``window``: its 0x6067.
+    ``layout``: one of ``simulated_drives.LAYOUTS``, with ``-sync`` its RPDOs synchronous
+    and the gateway producing SYNC; ``ramp``: its 0x6083 (the simulated drive brakes a halt
+    with it); ``window``: its 0x6067.
     """
-    axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos(layout))
+    name, sync = layout.removesuffix('-sync'), layout.endswith('-sync')
+    axis = rig('-p', 'drives.command_timeout:=0.0',
+               *(('-p', 'sync.period:=0.01') if sync else ()),
+               pdos=synchronous(name) if sync else layout_pdos(name))
     axis.drive.set_value(POSITION_WINDOW, 0, struct.pack('<I', window))
     axis.enable_moving()
     axis.stop_streams()  # 0x60FF holds VELOCITY: the axis runs on
@@ -93,7 +99,7 @@ def during_the_braking(axis: DriveRig, first: tuple, then: tuple):
 # standing (12 of 12).
 @pytest.mark.parametrize('ramp, window', [(0, WINDOW), (LONG_RAMP, WINDOW), (LONG_RAMP, 100000)],
                          ids=['at-once', 'long-ramp', 'long-ramp-wide-window'])
-@pytest.mark.parametrize('layout', ['combined', 'vendor'])
+@pytest.mark.parametrize('layout', ['combined', 'vendor', 'vendor-sync'])
 @pytest.mark.parametrize('command', ['enable', 'set_mode'])
 def test_a_mode_change_of_a_moving_axis_holds_it_where_it_stood(rig, layout, command, ramp,
                                                                  window):
