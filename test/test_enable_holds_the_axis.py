@@ -66,6 +66,20 @@ def entries_to_operation_enabled(drive) -> list:
     return seen
 
 
+def halt_releases(drive) -> list:
+    """Record the drive's velocity each time its halt is released (at its first cycle)."""
+    released, halted = [], [False]
+    move = drive._move
+
+    def moving(elapsed: float) -> None:
+        if halted[0] and not drive._halted:
+            released.append(drive._velocity)
+        halted[0] = drive._halted
+        move(elapsed)
+    drive._move = moving
+    return released
+
+
 def leave_stale_targets(drive) -> None:
     """Put targets in the drive as another master would have left them."""
     position = drive.position
@@ -238,15 +252,7 @@ def test_an_enable_of_an_axis_braking_from_a_halt_releases_it_standing(rig):
     assert axis.command('enable', CSP).success
     wait_until(lambda: axis.publisher.get_subscription_count() > 0, ANSWER, 'a subscriber')
     drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', 1000))  # 1.5 s from VELOCITY
-    released, halted = [], [False]
-    move = drive._move
-
-    def moving(elapsed: float) -> None:
-        if halted[0] and not drive._halted:
-            released.append(drive._velocity)
-        halted[0] = drive._halted
-        move(elapsed)
-    drive._move = moving
+    released = halt_releases(drive)
     stop = threading.Event()
 
     def run_ahead() -> None:  # CSP set-points VELOCITY counts/s ahead, until halted

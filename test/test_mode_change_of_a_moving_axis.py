@@ -11,12 +11,13 @@ tested in ``test_drives``, whose gateway runs in this process.
 
 import struct
 import threading
+from typing import Callable
 
 import pytest
 from rclpy.action import ActionClient
 import test_drive_safety
 from test_drive_safety import ANSWER, COMMAND_TIMEOUT, DriveRig, NODE, VELOCITY
-from test_enable_holds_the_axis import synchronous
+from test_enable_holds_the_axis import halt_releases, synchronous
 
 from cbcan_ros.action import DriveMove
 from cbcan_ros.core.drives.commands import STILL_SPAN
@@ -73,17 +74,30 @@ def entering_csp(drive) -> list:
     return entering
 
 
-def during_the_braking(axis: DriveRig, first: tuple, then: tuple):
-    """Call ``first`` (command, mode); once the axis brakes for it, ``then``.
+def mover(axis: DriveRig):
+    """Return ``goal(position, velocity=500)``: send a ``~/move`` goal, return its handle."""
+    client = ActionClient(axis.client_node, DriveMove, f'{axis.name}/move')
+    assert client.wait_for_server(timeout_sec=ANSWER)
 
-    Return their answers and the axis's velocity as ``then`` was answered.
+    def goal(position: float, velocity: float = 500.0):
+        handle = wait_for_future(client.send_goal_async(DriveMove.Goal(
+            node_id=NODE, position=position, velocity=velocity)), ANSWER)
+        assert handle.accepted
+        return handle
+    return goal
+
+
+def during_the_braking(axis: DriveRig, first: tuple, then: Callable):
+    """Call ``first`` (command, mode); once the axis brakes for it, ``then()``.
+
+    Return their answers and the axis's velocity as ``then`` returned.
     """
     answers = []
     thread = threading.Thread(target=lambda: answers.append(axis.command(*first)))
     thread.start()
     try:
         axis.drive_reaches(lambda drive: abs(drive.velocity) < 1400, 'the axis braking')
-        later = axis.command(*then)
+        later = then()
         velocity = axis.drive.velocity
     finally:
         thread.join()
@@ -261,7 +275,7 @@ def test_a_resume_while_the_axis_brakes_for_a_mode_change_is_refused(rig):
 # up to its old velocity again (6 of 6).
 def test_a_halt_while_the_axis_brakes_for_a_mode_change_keeps_it_from_a_resume(rig):
     axis = moving_in_csv(rig, 'combined', LONG_RAMP)
-    answer, halted, _ = during_the_braking(axis, ('home',), ('halt',))
+    answer, halted, _ = during_the_braking(axis, ('home',), lambda: axis.command('halt'))
     assert not answer.success, answer.message
     # Once a defect (a red team's): the homing, replaced, marked the drive as needing an
     # enable after the halt had begun, and the halt failed with "it left OPERATION_ENABLED,
@@ -279,14 +293,7 @@ def test_a_halt_while_the_axis_brakes_for_a_mode_change_keeps_it_from_a_resume(r
 # move takes over the braking, and goes on in profile position from where the axis stands.
 def test_a_move_while_another_brakes_for_its_mode_change_takes_over_and_arrives(rig):
     axis = moving_in_csv(rig, 'combined', LONG_RAMP)
-    mover = ActionClient(axis.client_node, DriveMove, f'{axis.name}/move')
-    assert mover.wait_for_server(timeout_sec=ANSWER)
-
-    def goal(position: float):
-        handle = wait_for_future(mover.send_goal_async(DriveMove.Goal(
-            node_id=NODE, position=position, velocity=500.0)), ANSWER)
-        assert handle.accepted
-        return handle
+    goal = mover(axis)
     first = goal(axis.drive.position + 100000.0)
     axis.drive_reaches(lambda drive: abs(drive.velocity) < 1400, 'the axis braking')
     second = goal(axis.drive.position + 1500.0)  # ahead: braking takes about 1000 counts
@@ -309,7 +316,8 @@ def test_a_set_mode_replacing_one_under_way_gives_the_drive_back_still_watched(r
     stream = axis.enable_moving()
     stream.PERIOD = 0.001  # a target every millisecond: one taken mid-change would show
     axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', LONG_RAMP))
-    first, second, _ = during_the_braking(axis, ('set_mode', CSP), ('set_mode', CSV))
+    first, second, _ = during_the_braking(axis, ('set_mode', CSP),
+                                            lambda: axis.command('set_mode', CSV))
     assert not first.success and 'replaced' in first.message, first.message
     assert second.success and 'enable' not in second.message, second.message
     axis.drive_reaches(lambda drive: drive.velocity == VELOCITY, 'the stream followed again')
@@ -322,8 +330,30 @@ def test_a_set_mode_replacing_one_under_way_gives_the_drive_back_still_watched(r
 # at 1200 counts/s.
 def test_a_set_mode_to_the_mode_it_brakes_in_answers_once_the_axis_stands(rig):
     axis = moving_in_csv(rig, 'combined', LONG_RAMP)
-    _, second, velocity = during_the_braking(axis, ('set_mode', CSP), ('set_mode', CSV))
+    _, second, velocity = during_the_braking(axis, ('set_mode', CSP),
+                                            lambda: axis.command('set_mode', CSV))
     assert second.success and 'held' not in second.message, second.message
     assert abs(velocity) <= WINDOW / STILL_SPAN, f'answered at velocity {velocity}'
     assert axis.drive._read(MODE) == CSV
     wait_until(lambda: not axis.latest().halted, ANSWER, 'drive_state not halted')
+
+
+# Once a defect (a red team's): a move replacing a homing that braked for its mode change,
+# the axis still in profile position, released the halt at once: the axis went from +1300
+# to -1000 counts/s within 0.2 s, with no stand between (4 of 4).
+def test_a_move_replacing_a_homing_that_brakes_in_pp_releases_the_axis_standing(rig):
+    axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos('combined'))
+    axis.wait_state('SWITCH_ON_DISABLED')
+    axis.nmt_start()
+    assert axis.command('enable', PP).success
+    axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', LONG_RAMP))
+    goal = mover(axis)
+    first = goal(axis.drive.position + 100000.0, float(VELOCITY))
+    axis.drive_reaches(lambda drive: abs(drive.velocity) == VELOCITY, 'the axis moving in PP')
+    released = halt_releases(axis.drive)
+    _, second, _ = during_the_braking(
+        axis, ('home',), lambda: goal(axis.drive.position - 3000.0, 1000.0))
+    assert not wait_for_future(first.get_result_async(), ANSWER).result.success
+    done = wait_for_future(second.get_result_async(), COMMAND_TIMEOUT + ANSWER).result
+    assert done.success, done.message
+    assert released and abs(released[0]) <= WINDOW / STILL_SPAN, released

@@ -763,7 +763,10 @@ class DriveCommands:
             return why or f'set-points taken; node {node_id} reached {here} (drive units)'
 
     async def _change_to_pp(self, drive) -> None:
-        if not self._shows_mode(drive, cia402.PROFILE_POSITION):
+        # Also in PP already, braking for another command's mode change: waited for, as
+        # _change_mode does, before a set-point releases the halt.
+        if (not self._shows_mode(drive, cia402.PROFILE_POSITION)
+                or _halted_for_a_mode(drive)):
             await self._change_mode(drive, cia402.PROFILE_POSITION)
 
     async def _new_set_point(self, drive, position: int) -> int:
