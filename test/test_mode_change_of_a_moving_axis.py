@@ -357,3 +357,27 @@ def test_a_move_replacing_a_homing_that_brakes_in_pp_releases_the_axis_standing(
     done = wait_for_future(second.get_result_async(), COMMAND_TIMEOUT + ANSWER).result
     assert done.success, done.message
     assert released and abs(released[0]) <= WINDOW / STILL_SPAN, released
+
+
+# Once a defect (a red team's): an enable whose time ran out while the halted axis still
+# braked (a ramp longer than the enable's default 2 s) answered only "timed out", though it
+# leaves the axis halted and needing an enable; and the enable before waited at most half a
+# second, then released the axis at speed (test_enable_holds_the_axis).
+def test_an_enable_that_times_out_while_the_axis_brakes_says_so_and_releases_nothing(rig):
+    axis = moving_in_csv(rig, 'combined', LONG_RAMP)
+    speeds = []
+    move = axis.drive._move
+
+    def moving(elapsed: float) -> None:
+        move(elapsed)
+        speeds.append(abs(axis.drive._velocity))
+    axis.drive._move = moving
+    halted, enabled, _ = during_the_braking(axis, ('halt',),
+                                            lambda: axis.command('enable', CSV, timeout=0.3))
+    assert not enabled.success and 'still braking' in enabled.message, enabled.message
+    assert 'replaced' in halted.message, halted.message  # by the enable
+    faster = [(a, b) for a, b in zip(speeds, speeds[1:], strict=False) if b > a + 1]
+    assert not faster, f'the axis sped up again: {faster[:5]}'
+    again = axis.command('enable', CSV)
+    assert again.success, again.message
+    assert axis.drive.velocity == 0

@@ -52,6 +52,11 @@ READS_AT_START: contextvars.ContextVar = contextvars.ContextVar('reads_at_start'
 ENABLED_ONLY: contextvars.ContextVar = contextvars.ContextVar('enabled_only', default=False)
 # The running sequence's time limit (an ``asyncio.timeout``; its deadline None: no limit).
 TIME_LIMIT: contextvars.ContextVar = contextvars.ContextVar('time_limit', default=None)
+# What the answer of a sequence adds when its time runs out now ('' = nothing).
+ON_TIMEOUT: contextvars.ContextVar = contextvars.ContextVar('on_timeout', default='')
+# What an enable's answer adds when its time ran out while the halted axis braked.
+STILL_BRAKING = ('; the axis was still braking from its halt and stays halted: call enable '
+                 'again once it stands, or give the enable a timeout longer than its ramp')
 
 
 class DriveFailed(Exception):
@@ -161,6 +166,7 @@ class DriveCommands:
         self._tokens[task] = token
         READS_AT_START.set(reads)  # this task's own context
         ENABLED_ONLY.set(enabled)
+        ON_TIMEOUT.set('')
         service, node_id = self._service, drive.node_id
         try:
             # In this task (not wait_for's own): a cancel reaches the sequence at once, and
@@ -179,7 +185,8 @@ class DriveCommands:
         except TimeoutError:
             status = service.status(node_id)
             message = (f'timed out after {timeout:g} s: node {node_id} is {status.state} '
-                       f'(statusword 0x{status.statusword:04X}, mode {status.mode})')
+                       f'(statusword 0x{status.statusword:04X}, mode {status.mode})'
+                       f'{ON_TIMEOUT.get()}')
             held = _halted_for_a_mode(drive)  # before the timeout's halt takes its place
             if halt_on_timeout:  # a motion that did not end in time does not run on
                 message = await self._halt_answered(drive, task, message)
@@ -384,9 +391,10 @@ class DriveCommands:
 
         In profile position, profile velocity and homing, as ``halt`` judges it (statusword
         bits 10 and 12, at the drive's own windows). In the cyclic modes and profile torque,
-        where CiA 402 leaves those bits to the vendor: a velocity within the drive's velocity
-        threshold (0x606F), or, without one, less motion than its position window (at most
-        ``DEFAULT_WINDOW``: a wide window would let a braking axis pass) in ``STILL_SPAN``.
+        where CiA 402 leaves those bits to the vendor: a velocity of 0 or within the drive's
+        velocity threshold (0x606F), or, without one, less motion than its position window (at
+        most ``DEFAULT_WINDOW``: a wide window would let a braking axis pass) in
+        ``STILL_SPAN``.
         Raises when the drive leaves OPERATION_ENABLED, faults or is lost meanwhile.
         """
         async def until(drive, ok: Callable):
@@ -406,8 +414,11 @@ class DriveCommands:
             read = await asyncio.wrap_future(self._service.read_feedback(
                 drive, [cia402.VELOCITY_ACTUAL, cia402.POSITION_ACTUAL], SEND_TIMEOUT))
             status = await until(drive, lambda s: True)
-            if threshold and cia402.VELOCITY_ACTUAL in read:
-                if abs(read[cia402.VELOCITY_ACTUAL]) <= threshold:
+            velocity = read.get(cia402.VELOCITY_ACTUAL)
+            if velocity == 0:  # it stands, as an axis not halted yet does (``_halt_for_mode``)
+                return
+            if threshold and velocity is not None:
+                if abs(velocity) <= threshold:
                     return
             elif before is not None and abs(status.position - before) <= window:
                 return
@@ -490,7 +501,10 @@ class DriveCommands:
             # a halt, a cancelled move, the command timeout) is waited for as a mode change
             # waits, within the command's time. Released earlier, a drive that ramps its halt
             # in CSP would stop short of the ramp's end, and run back to the position read.
+            halted = self._shows_mode(drive, mode) and not _halted_for_a_mode(drive)
+            ON_TIMEOUT.set(STILL_BRAKING if halted else '')  # a mode change's note says it
             await self._halt_for_mode(drive)
+            ON_TIMEOUT.set('')
         hold = await self._hold(drive, mode)
         held = hold.get(cia402.TARGET_POSITION, 0)
         if not self._shows_mode(drive, mode):
