@@ -61,6 +61,24 @@ def moving_in_csv(rig, layout: str, ramp: int = 0, window: int = WINDOW) -> Driv
     return axis
 
 
+def speeds_of(drive) -> list:
+    """Record the drive's speed (|velocity|) at each of its cycles from now on."""
+    speeds = []
+    move = drive._move
+
+    def moving(elapsed: float) -> None:
+        move(elapsed)
+        speeds.append(abs(drive._velocity))
+    drive._move = moving
+    return speeds
+
+
+def never_faster(speeds: list) -> None:
+    """Fail if the axis sped up between two cycles (braking, it only slows)."""
+    faster = [(a, b) for a, b in zip(speeds, speeds[1:], strict=False) if b > a + 1]
+    assert not faster, f'the axis sped up again: {faster[:5]}'
+
+
 def entering_csp(drive) -> list:
     """Record (velocity, target - position) at the drive's first cycle in CSP."""
     entering = []
@@ -242,13 +260,7 @@ def test_a_drive_slow_to_answer_a_setting_is_halted_at_once_for_a_mode_change(ri
 # refused a halt and skipped by the command timeout (8 of 8).
 def test_a_resume_while_the_axis_brakes_for_a_mode_change_is_refused(rig):
     axis = moving_in_csv(rig, 'combined', LONG_RAMP)
-    speeds = []
-    move = axis.drive._move
-
-    def moving(elapsed: float) -> None:
-        move(elapsed)
-        speeds.append(abs(axis.drive._velocity))
-    axis.drive._move = moving
+    speeds = speeds_of(axis.drive)
     homing = []
     thread = threading.Thread(target=lambda: homing.append(axis.command('home', timeout=0.3)))
     thread.start()
@@ -265,8 +277,7 @@ def test_a_resume_while_the_axis_brakes_for_a_mode_change_is_refused(rig):
     answer, = homing
     assert not answer.success and 'halted at position' in answer.message, answer.message
     axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis at a stand')
-    faster = [(a, b) for a, b in zip(speeds, speeds[1:], strict=False) if b > a + 1]
-    assert not faster, f'the axis sped up again: {faster[:5]}'
+    never_faster(speeds)
     assert not axis.command('resume').success
 
 
@@ -365,19 +376,12 @@ def test_a_move_replacing_a_homing_that_brakes_in_pp_releases_the_axis_standing(
 # second, then released the axis at speed (test_enable_holds_the_axis).
 def test_an_enable_that_times_out_while_the_axis_brakes_says_so_and_releases_nothing(rig):
     axis = moving_in_csv(rig, 'combined', LONG_RAMP)
-    speeds = []
-    move = axis.drive._move
-
-    def moving(elapsed: float) -> None:
-        move(elapsed)
-        speeds.append(abs(axis.drive._velocity))
-    axis.drive._move = moving
+    speeds = speeds_of(axis.drive)
     halted, enabled, _ = during_the_braking(axis, ('halt',),
                                             lambda: axis.command('enable', CSV, timeout=0.3))
     assert not enabled.success and 'still braking' in enabled.message, enabled.message
     assert 'replaced' in halted.message, halted.message  # by the enable
-    faster = [(a, b) for a, b in zip(speeds, speeds[1:], strict=False) if b > a + 1]
-    assert not faster, f'the axis sped up again: {faster[:5]}'
+    never_faster(speeds)
     again = axis.command('enable', CSV)
     assert again.success, again.message
     assert axis.drive.velocity == 0
