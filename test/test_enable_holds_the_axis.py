@@ -243,10 +243,19 @@ def test_a_mode_change_of_a_drive_that_quick_stopped_by_itself_starts_no_motion(
 # Once a defect (a red team's finding, read in the code): an enable of an axis still braking
 # from a halt waited half a second, then held it at the position read then and released the
 # halt. A drive that ramps its halt in CSP stopped short of the ramp's end, at speed, and ran
-# back to that position.
-def test_an_enable_of_an_axis_braking_from_a_halt_releases_it_standing(rig):
+# back to that position. Then, for a few hours, a velocity (0x606C) that read 0 counted as
+# standing: a drive without 0x606F whose velocity unit is coarse (rpm against an encoder's
+# counts) was released at 907-965 counts/s (a red team's, 3 of 3).
+@pytest.mark.parametrize('velocity_unit', [1, 2000], ids=['counts', 'coarse'])
+def test_an_enable_of_an_axis_braking_from_a_halt_releases_it_standing(rig, velocity_unit):
     axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos('combined'))
     drive = axis.drive
+    publish = drive._publish
+
+    def in_velocity_units() -> None:  # 0x606C in units of velocity_unit counts/s
+        publish()
+        drive.node.object_dictionary.write(0x606C, 0, round(drive._velocity / velocity_unit))
+    drive._publish = in_velocity_units
     axis.wait_state('SWITCH_ON_DISABLED')
     axis.nmt_start()
     assert axis.command('enable', CSP).success
@@ -264,10 +273,10 @@ def test_an_enable_of_an_axis_braking_from_a_halt_releases_it_standing(rig):
     streaming.start()
     halting = []
     try:
-        axis.drive_reaches(lambda drive: drive.velocity > 1000, 'the axis running in CSP')
+        axis.drive_reaches(lambda drive: drive._velocity > 1000, 'the axis running in CSP')
         halter = threading.Thread(target=lambda: halting.append(axis.command('halt')))
         halter.start()
-        axis.drive_reaches(lambda drive: drive._halted and abs(drive.velocity) < 1000,
+        axis.drive_reaches(lambda drive: drive._halted and abs(drive._velocity) < 1000,
                            'the axis braking')
         stop.set()
         enabled = axis.command('enable', CSP)

@@ -374,11 +374,12 @@ def test_a_move_replacing_a_homing_that_brakes_in_pp_releases_the_axis_standing(
 # braked (a ramp longer than the enable's default 2 s) answered only "timed out", though it
 # leaves the axis halted and needing an enable; and the enable before waited at most half a
 # second, then released the axis at speed (test_enable_holds_the_axis).
-def test_an_enable_that_times_out_while_the_axis_brakes_says_so_and_releases_nothing(rig):
+@pytest.mark.parametrize('mode', [CSV, CSP], ids=['its mode', 'another mode'])
+def test_an_enable_that_times_out_while_the_axis_brakes_says_so_and_releases_nothing(rig, mode):
     axis = moving_in_csv(rig, 'combined', LONG_RAMP)
     speeds = speeds_of(axis.drive)
     halted, enabled, _ = during_the_braking(axis, ('halt',),
-                                            lambda: axis.command('enable', CSV, timeout=0.3))
+                                            lambda: axis.command('enable', mode, timeout=0.3))
     assert not enabled.success and 'still braking' in enabled.message, enabled.message
     assert 'replaced' in halted.message, halted.message  # by the enable
     never_faster(speeds)

@@ -391,10 +391,9 @@ class DriveCommands:
 
         In profile position, profile velocity and homing, as ``halt`` judges it (statusword
         bits 10 and 12, at the drive's own windows). In the cyclic modes and profile torque,
-        where CiA 402 leaves those bits to the vendor: a velocity of 0 or within the drive's
-        velocity threshold (0x606F), or, without one, less motion than its position window (at
-        most ``DEFAULT_WINDOW``: a wide window would let a braking axis pass) in
-        ``STILL_SPAN``.
+        where CiA 402 leaves those bits to the vendor: a velocity within the drive's velocity
+        threshold (0x606F), or, without one, less motion than its position window (at most
+        ``DEFAULT_WINDOW``: a wide window would let a braking axis pass) in ``STILL_SPAN``.
         Raises when the drive leaves OPERATION_ENABLED, faults or is lost meanwhile.
         """
         async def until(drive, ok: Callable):
@@ -415,8 +414,8 @@ class DriveCommands:
                 drive, [cia402.VELOCITY_ACTUAL, cia402.POSITION_ACTUAL], SEND_TIMEOUT))
             status = await until(drive, lambda s: True)
             velocity = read.get(cia402.VELOCITY_ACTUAL)
-            if velocity == 0:  # it stands, as an axis not halted yet does (``_halt_for_mode``)
-                return
+            # Not a velocity of 0 alone: in units coarser than the position's (rpm against an
+            # encoder's counts), a braking axis reads 0 long before it stands.
             if threshold and velocity is not None:
                 if abs(velocity) <= threshold:
                     return
@@ -501,7 +500,7 @@ class DriveCommands:
             # a halt, a cancelled move, the command timeout) is waited for as a mode change
             # waits, within the command's time. Released earlier, a drive that ramps its halt
             # in CSP would stop short of the ramp's end, and run back to the position read.
-            halted = self._shows_mode(drive, mode) and not _halted_for_a_mode(drive)
+            halted = drive.controlword & cia402.HALT and not _halted_for_a_mode(drive)
             ON_TIMEOUT.set(STILL_BRAKING if halted else '')  # a mode change's note says it
             await self._halt_for_mode(drive)
             ON_TIMEOUT.set('')
