@@ -383,6 +383,6 @@ def test_an_enable_that_times_out_while_the_axis_brakes_says_so_and_releases_not
     assert not enabled.success and 'still braking' in enabled.message, enabled.message
     assert 'replaced' in halted.message, halted.message  # by the enable
     never_faster(speeds)
-    again = axis.command('enable', CSV)
+    again = axis.command('enable', CSV)  # once the axis stands, by the judgement it has
     assert again.success, again.message
-    assert axis.drive.velocity == 0
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis held at a stand')
