@@ -30,6 +30,7 @@ from conftest import wait_for_future, wait_until
 
 PP, PV, CSP, CSV = 1, 3, 8, 9
 MODE, TARGET_POSITION, CONTROLWORD, POSITION_WINDOW = 0x6060, 0x607A, 0x6040, 0x6067
+TARGET_VELOCITY = 0x60FF
 QUICK_STOP_OPTION = 0x605A
 # A braking ramp that takes 1.5 s from the rig's VELOCITY (1500 counts/s): longer than the
 # half second the gateway once waited before it went on, moving.
@@ -386,3 +387,26 @@ def test_an_enable_that_times_out_while_the_axis_brakes_says_so_and_releases_not
     again = axis.command('enable', CSV)  # once the axis stands, by the judgement it has
     assert again.success, again.message
     axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis held at a stand')
+
+
+# Once a defect (a red team's): before it halted anything, a mode change took a velocity
+# (0x606C) that read 0 for a standing axis. A drive without 0x606F whose velocity unit is
+# coarse (rpm against an encoder's counts) reads 0 while its axis still moves: a CSV axis at
+# 800 counts/s, velocity in units of 2,000 counts/s, went to CSP unhalted (3 of 3).
+def test_a_velocity_that_reads_0_in_coarse_units_is_not_taken_for_a_stand(rig):
+    axis = moving_in_csv(rig, 'combined')
+    drive = axis.drive
+    publish = drive._publish
+
+    def in_coarse_units() -> None:  # 0x606C in units of 2,000 counts/s
+        publish()
+        drive.node.object_dictionary.write(0x606C, 0, round(drive._velocity / 2000))
+    drive._publish = in_coarse_units
+    drive.set_value(TARGET_VELOCITY, 0, struct.pack('<i', 800))  # another master's target
+    axis.drive_reaches(lambda drive: drive._velocity == 800, 'the axis at 800 counts/s')
+    entering = entering_csp(drive)
+    answer = axis.command('set_mode', CSP)
+    assert answer.success, answer.message
+    wait_until(lambda: entering, ANSWER, 'a cycle of the drive in CSP')
+    velocity, behind = entering[0]
+    assert abs(velocity) <= WINDOW / STILL_SPAN and abs(behind) <= WINDOW, (velocity, behind)

@@ -359,12 +359,13 @@ class DriveCommands:
 
         The new mode's holding target is read once the axis stands: read while it moves, it
         is where the axis was some milliseconds before the change, and a drive entering CSP
-        would run back to it. An axis whose velocity reads 0 stands already; another is
-        halted (a halt of a mode change before, replaced or timed out, counts as this one's)
-        and waited for within the command's time (``_until_standing``): a long braking ramp
-        is never cut short. One halted by a halt, a cancelled move or the command timeout
-        stays halted. A drive that leaves OPERATION_ENABLED meanwhile ends the command:
-        nothing more is sent to it.
+        would run back to it. An axis whose velocity reads 0 stands already, once its
+        velocity threshold (0x606F) or its position confirms it (``_standing_confirmed``);
+        another is halted (a halt of a mode change before, replaced or timed out, counts as
+        this one's) and waited for within the command's time (``_until_standing``): a long
+        braking ramp is never cut short. One halted by a halt, a cancelled move or the
+        command timeout stays halted. A drive that leaves OPERATION_ENABLED meanwhile ends the
+        command: nothing more is sent to it.
         """
         status = self._service.status(drive.node_id)
         if status.state != cia402.OPERATION_ENABLED:
@@ -374,7 +375,8 @@ class DriveCommands:
         if halting:
             read = await asyncio.wrap_future(self._service.read_feedback(
                 drive, [cia402.VELOCITY_ACTUAL], SEND_TIMEOUT))
-            if read.get(cia402.VELOCITY_ACTUAL) == 0:
+            if (read.get(cia402.VELOCITY_ACTUAL) == 0
+                    and await self._standing_confirmed(drive)):
                 return False
             stopping: Dict[int, int] = {}
             await self._send(drive, {}, halt=MODE_CHANGE, stopping=stopping)
@@ -385,6 +387,27 @@ class DriveCommands:
         threshold = await velocity_threshold(drive, SEND_TIMEOUT)
         await self._until_standing(drive, status.mode, threshold, halting)
         return ours
+
+    async def _standing_confirmed(self, drive) -> bool:
+        """Return whether an axis whose velocity read 0 stands, by the drive's own measure.
+
+        Its velocity threshold (0x606F), in the units of its velocity; without one, its
+        position moving no more than its window (at most ``DEFAULT_WINDOW``) in
+        ``STILL_SPAN``: a velocity unit coarser than the position's (rpm against an encoder's
+        counts) reads 0 while the axis still moves.
+        """
+        if await velocity_threshold(drive, SEND_TIMEOUT):
+            return True
+        window = min(await position_window(drive, SEND_TIMEOUT), DEFAULT_WINDOW)
+        positions = []
+        for wait in (0.0, STILL_SPAN):
+            await asyncio.sleep(wait)
+            read = await asyncio.wrap_future(self._service.read_feedback(
+                drive, [cia402.POSITION_ACTUAL], SEND_TIMEOUT))
+            if cia402.POSITION_ACTUAL not in read:
+                return False
+            positions.append(read[cia402.POSITION_ACTUAL])
+        return abs(positions[1] - positions[0]) <= window
 
     async def _until_standing(self, drive, mode: int, threshold: int, halting: bool) -> None:
         """Return once the halted axis stands, by the drive's own sign where it gives one.
