@@ -199,7 +199,7 @@ class DriveCommands:
             self._halt_when_cancelled.discard(task)
             # A move replaced before its cancel came halts nothing: the drive is the newer
             # sequence's.
-            if halting and self._tasks.get(node_id) is task:
+            if halting and self._is_current(drive):
                 reason = await self._halt_answered(drive, task, reason)
             return DriveResult(False, reason + self._held_for_the_mode(drive, held),
                                service.status(node_id))
@@ -207,6 +207,10 @@ class DriveCommands:
             self._tokens.pop(task, None)
             if self._tasks.get(node_id) is task:
                 del self._tasks[node_id]
+
+    def _is_current(self, drive) -> bool:
+        """Return whether the running task is still ``drive``'s sequence (none replaced it)."""
+        return self._tasks.get(drive.node_id) is asyncio.current_task()
 
     # Waiting and sending.
 
@@ -340,10 +344,7 @@ class DriveCommands:
         """
         halted_here = False
         if hold is None:
-            # An axis a replaced command halted for its mode change is waited for all the
-            # same: the new mode may be the one it is braking in.
-            halted_here = ((not self._shows_mode(drive, mode) or _halted_for_a_mode(drive))
-                           and await self._halt_for_mode(drive))
+            halted_here = self._stands_first(drive, mode) and await self._halt_for_mode(drive)
             hold = await self._hold(drive, mode)
         self._service.keep_state(drive)  # after the wait for the axis: it may have stopped
         if hold:
@@ -399,15 +400,15 @@ class DriveCommands:
         if await velocity_threshold(drive, SEND_TIMEOUT):
             return True
         window = min(await position_window(drive, SEND_TIMEOUT), DEFAULT_WINDOW)
-        positions = []
-        for wait in (0.0, STILL_SPAN):
-            await asyncio.sleep(wait)
+
+        async def position() -> Optional[int]:  # None when not read: nothing confirmed
             read = await asyncio.wrap_future(self._service.read_feedback(
                 drive, [cia402.POSITION_ACTUAL], SEND_TIMEOUT))
-            if cia402.POSITION_ACTUAL not in read:
-                return False
-            positions.append(read[cia402.POSITION_ACTUAL])
-        return abs(positions[1] - positions[0]) <= window
+            return read.get(cia402.POSITION_ACTUAL)
+        before = await position()
+        await asyncio.sleep(STILL_SPAN)
+        after = await position()
+        return before is not None and after is not None and abs(after - before) <= window
 
     async def _until_standing(self, drive, mode: int, threshold: int, halting: bool) -> None:
         """Return once the halted axis stands, by the drive's own sign where it gives one.
@@ -455,7 +456,7 @@ class DriveCommands:
         now: a move, homing, set_mode or enable goes on from the halt, a stop ends it, and
         any other keeps it and says so when it ends.
         """
-        if not held or self._tasks.get(drive.node_id) is not asyncio.current_task():
+        if not held or not self._is_current(drive):
             return ''
         self._service.set_enabled(drive, False)
         status = self._service.status(drive.node_id)
@@ -486,6 +487,14 @@ class DriveCommands:
         await drive.objects.mapping_known(MAPPING_WAIT)
         if deadline is not None:
             limit.reschedule(deadline + loop.time() - began)
+
+    def _stands_first(self, drive, mode: int) -> bool:
+        """Return whether going to ``mode`` brings the axis to a stand first.
+
+        When the drive shows another mode, and when a replaced command halted it for its mode
+        change (the new mode may be the one it brakes in).
+        """
+        return not self._shows_mode(drive, mode) or _halted_for_a_mode(drive)
 
     def _shows_mode(self, drive, mode: int) -> bool:
         """Return whether the drive shows ``mode``; if so, its frames carry that mode now.
@@ -656,7 +665,7 @@ class DriveCommands:
         except BaseException:
             # Halted for it, the drive needs a fresh enable all the same (``_own``). Replaced,
             # the drive is the newer command's, which had it given back (``_own``).
-            if self._tasks.get(drive.node_id) is task:
+            if self._is_current(drive):
                 self._service.set_enabled(drive, self._still_enabled(drive, enabled))
             raise
         finally:
@@ -799,10 +808,9 @@ class DriveCommands:
             return why or f'set-points taken; node {node_id} reached {here} (drive units)'
 
     async def _change_to_pp(self, drive) -> None:
-        # Also in PP already, braking for another command's mode change: waited for, as
-        # _change_mode does, before a set-point releases the halt.
-        if (not self._shows_mode(drive, cia402.PROFILE_POSITION)
-                or _halted_for_a_mode(drive)):
+        # Also in PP already, braking for another command's mode change: waited for before
+        # a set-point releases the halt.
+        if self._stands_first(drive, cia402.PROFILE_POSITION):
             await self._change_mode(drive, cia402.PROFILE_POSITION)
 
     async def _new_set_point(self, drive, position: int) -> int:
