@@ -259,9 +259,9 @@ class DriveObjects:
                     f'node {self.node_id}: a later command changed the controlword before '
                     f'this one was sent in full; the rest was not sent'))
             commanded, held = self.commanded, self._held
-            if (any(key not in held for frame in frames for key in frame.held)
-                    or any(index not in commanded for frame in frames
-                           for index in frame.indexes)):
+            if not all(all(map(held.__contains__, frame.held))
+                       and all(map(commanded.__contains__, frame.indexes))
+                       for frame in frames):
                 return resolved(SdoResult.failed(
                     f'node {self.node_id} booted before this command was sent in full; the '
                     f'rest was not sent'))

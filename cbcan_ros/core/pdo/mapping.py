@@ -175,7 +175,8 @@ class ReceivedPdo:
         return decode(self.mapping, self.data)
 
 
-@dataclass(frozen=True)
+# Slotted for the same reason: a stream of targets makes a few for every frame it sends.
+@dataclass(slots=True)
 class EntryValue:
     """A value to send for one mapped object: ``data`` (exact bytes) if given, else ``value``."""
 

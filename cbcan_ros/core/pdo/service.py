@@ -86,6 +86,8 @@ class _Device:
     done: int = 0         # the request the current mapping answers
     booted: bool = False  # configured by the boot service: read when it asks
     readers: List[Tuple[int, Future]] = field(default_factory=list)  # (request, its answer)
+    # RPDO: (its mapping, why a write of it is refused or None), worked out at its first write
+    refusals: Dict[int, Tuple[PdoMapping, Optional[SdoResult]]] = field(default_factory=dict)
     life: int = 0         # boot-ups heard: each wipes the RPDOs' frames
     streams_ended: int = 0  # times a stop, command or outage ended its streams (not time)
     failed_at: float = 0.0
@@ -560,9 +562,13 @@ class PdoService:
                 return SdoResult.failed(f'pdo {number}: node {node_id} has no RPDO {number} '
                                         f'(its RPDOs: {known}; PDO mapping '
                                         f'{device.mapping_text})')
-        refusal = self._write_refusal(mapping)
-        if refusal is not None:
-            return refusal
+            # Fixed for a mapping (the write rules are the gateway's): worked out once, not
+            # for each of a stream's thousands of frames a second.
+            refused = device.refusals.get(number)
+            if refused is None or refused[0] is not mapping:
+                refused = device.refusals[number] = (mapping, self._write_refusal(mapping))
+        if refused[1] is not None:
+            return refused[1]
         if data and values:
             return SdoResult.failed('give entries or data (the whole frame), not both')
         if data and len(data) != mapping.size:

@@ -31,7 +31,9 @@ class SdoResult:
     @classmethod
     def ok(cls, data: bytes = b'') -> 'SdoResult':
         """Return a successful result carrying ``data``."""
-        return cls(True, data=bytes(data))
+        # One shared empty success: every frame a stream sends answers one (results are
+        # frozen, so sharing it is safe).
+        return cls(True, data=bytes(data)) if data else _DONE
 
     @classmethod
     def aborted(cls, code: int, detail: str = '') -> 'SdoResult':
@@ -45,6 +47,9 @@ class SdoResult:
     def failed(cls, message: str, code: int = 0) -> 'SdoResult':
         """Return a failed result that no device abort explains (refused, bus down, ...)."""
         return cls(False, abort_code=code, message=message)
+
+
+_DONE = SdoResult(True)
 
 
 def check_node_id(node_id: int, allowed: str = "0..127 (0 = the gateway's own dictionary)",
