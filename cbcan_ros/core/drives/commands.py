@@ -26,7 +26,7 @@ from .arrival import (
     velocity_threshold,
 )
 from .checks import ENABLED_COMMANDS, lost_problem, MODE_CHANGE, RESUME_REFUSED, state_problem
-from .standstill import until_applied_at_sync, wait_for_standstill
+from .standstill import BY_STATUSWORD, until_applied_at_sync, wait_for_standstill
 from .status import DriveResult
 
 # The timeout of each SDO a sequence sends (a PDO goes out without an answer).
@@ -35,12 +35,11 @@ SEND_TIMEOUT = 1.0
 HALT_WAIT = 2.0
 # How long enable waits for the drive's PDO mapping being read (``mapping_known``).
 MAPPING_WAIT = 2.0
-# Before a mode change, in a cyclic mode or profile torque, an axis of a drive without a
-# velocity threshold (0x606F) stands once it moves less than its position window (at most
-# DEFAULT_WINDOW) in this long: a velocity read may jitter around 0 for good.
+# Halted (for a mode change, a halt or a cancel) in a cyclic mode or profile torque, an axis
+# of a drive without a velocity threshold (0x606F) stands once it moves less than its
+# position window (at most DEFAULT_WINDOW) in this long: a velocity read may jitter around 0
+# for good, or read 0 in units coarser than the position's while the axis still moves.
 STILL_SPAN = 0.1
-# The modes in which a halted drive shows that it stands (statusword bits 10, 12).
-SHOWS_STANDSTILL = frozenset({cia402.PROFILE_POSITION, cia402.PROFILE_VELOCITY, cia402.HOMING})
 # What the answer of a sequence that ended with the axis halted for a mode change adds.
 HELD_FOR_THE_MODE_CHANGE = ('; the axis was halted for the mode change and is held there: call '
                             'enable (in the mode wanted) to go on from where it stands')
@@ -428,8 +427,27 @@ class DriveCommands:
                                   f' while it braked (for the mode change or the enable); '
                                   f'nothing more was sent')
             return status
-        if mode in SHOWS_STANDSTILL:
-            await wait_for_standstill(self._service, drive, until, SEND_TIMEOUT, halting)
+        await self._stands(drive, mode, threshold, halting, until)
+
+    async def _standstill(self, drive, just_halted: bool = True) -> None:
+        """Return once the drive, halted by a halt or a cancel, stands (as ``_stands``)."""
+        mode = self._service.status(drive.node_id).mode
+        threshold = (0 if mode in BY_STATUSWORD
+                     else await velocity_threshold(drive, SEND_TIMEOUT))
+        await self._stands(drive, mode, threshold, just_halted, self._until, at_rest=True)
+
+    async def _stands(self, drive, mode: int, threshold: int, just_halted: bool,
+                      until: Callable, at_rest: bool = False) -> None:
+        """Return once the halted axis stands: ``_until_standing``'s judgement.
+
+        ``until(drive, ok)`` waits for a status and raises when the command cannot go on.
+        ``at_rest``: without 0x606F, the velocity must read 0 as well (a halt answers that
+        the axis stands; a mode change needs it slow enough to hold). A velocity that
+        jitters around 0 then never shows a stand.
+        """
+        if mode in BY_STATUSWORD:
+            await wait_for_standstill(self._service, drive, mode, until, SEND_TIMEOUT,
+                                      just_halted)
             return
         window = min(await position_window(drive, SEND_TIMEOUT), DEFAULT_WINDOW)
         before = None
@@ -443,7 +461,8 @@ class DriveCommands:
             if threshold and velocity is not None:
                 if abs(velocity) <= threshold:
                     return
-            elif before is not None and abs(status.position - before) <= window:
+            elif (before is not None and abs(status.position - before) <= window
+                  and (velocity == 0 or not at_rest)):
                 return
             before = status.position
             await asyncio.sleep(STILL_SPAN)
@@ -774,9 +793,6 @@ class DriveCommands:
                                                             SEND_TIMEOUT))
         return here, missed(drive.node_id, wanted, here, window,
                             read.get(cia402.TARGET_POSITION))
-
-    async def _standstill(self, drive, just_halted: bool = True) -> None:
-        await wait_for_standstill(self._service, drive, self._until, SEND_TIMEOUT, just_halted)
 
     async def _read_position(self, drive) -> None:
         await asyncio.wrap_future(self._service.read_feedback(drive, [cia402.POSITION_ACTUAL],

@@ -1,11 +1,13 @@
-"""When a halted drive stands: judged only by what the drive showed after it took the halt.
+"""When a halted drive stands, in the modes whose statusword says so.
+
+Profile position, profile velocity and homing: judged only by what the drive showed after it
+took the halt.
 
 Feedback the gateway takes just after it sent a halt may have left the drive before the halt
 reached it: frames in flight, or still in the gateway's own queue. Such a statusword can say
-"target velocity reached" of an axis running at its target, next to a velocity from before
-the motion began. So the wait reads the statusword and the velocity by SDO first, and then
-takes only the statuswords and velocities that come after that answer. A halt sent in a
-synchronous RPDO is applied at the SYNC after the one its frame followed: the read waits for
+"target velocity reached" of an axis running at its target. So the wait reads the statusword
+by SDO first, and then takes only the statuswords that come after that answer. A halt sent in
+a synchronous RPDO is applied at the SYNC after the one its frame followed: the read waits for
 two SYNCs then (one more than needed, for a frame that went out late).
 
 A drive may still answer that read from its last control cycle, before the halt took effect,
@@ -14,10 +16,11 @@ so no sign that can be left over from before the halt counts:
 - profile position and homing: bit 10 (with the halt bit set, the drive's own "standing",
   at its velocity window; a moving axis showed 0 there before the halt);
 - profile velocity: bit 10 and bit 12 ("speed is 0": an axis at its target velocity showed
-  bit 10 before the halt too);
-- profile torque and the cyclic modes (CSP, CSV, CST), where CiA 402 leaves bit 10 to the
-  vendor and many drives never set it there: a velocity (0x606C) of exactly 0. A drive
-  without that object, or whose velocity jitters at standstill, is not seen to stand.
+  bit 10 before the halt too).
+
+In profile torque and the cyclic modes CiA 402 leaves bit 10 to the vendor, and a velocity
+(0x606C) of 0 is no stand either (in units coarser than the position's it reads 0 while the
+axis moves): the drive commands judge those by 0x606F or the position (``DriveCommands``).
 
 A standstill the frames do not show within ``REREAD`` (its last frame may have come between
 the answer and the wait, and a drive that sends its values only on change sends no more) is
@@ -30,27 +33,26 @@ from typing import Callable, Dict
 
 from . import cia402
 
-STANDSTILL_READS = [cia402.STATUSWORD, cia402.VELOCITY_ACTUAL]
+STANDSTILL_READS = [cia402.STATUSWORD]
 REREAD = 0.5  # s
 BY_STATUSWORD = {cia402.PROFILE_POSITION: cia402.TARGET_REACHED,
                  cia402.HOMING: cia402.TARGET_REACHED,
                  cia402.PROFILE_VELOCITY: cia402.TARGET_REACHED | cia402.MODE_BIT_12}
 
 
-def shows_standing(statusword: int, velocity, mode: int) -> bool:
-    """Return whether a halted drive's statusword and velocity (None: unknown) show it stand."""
-    bits = BY_STATUSWORD.get(mode)
-    if bits is None:
-        return velocity == 0
+def shows_standing(statusword: int, mode: int) -> bool:
+    """Return whether a halted drive's statusword shows it stand (``mode`` in BY_STATUSWORD)."""
+    bits = BY_STATUSWORD[mode]
     return statusword & bits == bits
 
 
-async def wait_for_standstill(service, drive, until: Callable, read_timeout: float,
-                              just_halted: bool) -> None:
-    """Return once ``drive``, halted, stands; ``until(drive, ok)`` waits for a status.
+async def wait_for_standstill(service, drive, mode: int, until: Callable,
+                              read_timeout: float, just_halted: bool) -> None:
+    """Return once ``drive``, halted in ``mode`` (one of ``BY_STATUSWORD``), stands.
 
-    ``service`` is the drive service (``read_feedback``, ``status``, ``sync``); ``until``
-    raises when the drive faults, is lost, or leaves the state its command needs.
+    ``service`` is the drive service (``read_feedback``, ``status``, ``sync``); ``until(drive,
+    ok)`` waits for a status, and raises when the drive faults, is lost, or leaves the state
+    its command needs.
     ``just_halted``: the halt was just handed out (and may wait for a SYNC to apply).
     """
     if just_halted and drive.objects.applied_at_sync(cia402.CONTROLWORD):
@@ -60,8 +62,7 @@ async def wait_for_standstill(service, drive, until: Callable, read_timeout: flo
                                                                read_timeout))
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(REREAD):
-                await until(drive, _standing_since(drive, read,
-                                                   service.status(drive.node_id).mode))
+                await until(drive, _standing_since(drive, read, mode))
             return
 
 
@@ -89,11 +90,8 @@ async def _next_sync(sync) -> None:
 
 def _standing_since(drive, read: Dict[int, int], mode: int) -> Callable:
     """Return whether a status shows the axis standing, by ``read`` or what came after it."""
-    if cia402.STATUSWORD in read and shows_standing(
-            read[cia402.STATUSWORD], read.get(cia402.VELOCITY_ACTUAL), mode):
+    if cia402.STATUSWORD in read and shows_standing(read[cia402.STATUSWORD], mode):
         return lambda status: True
-    updates, velocities = drive.updates, drive.velocities
-    if mode in BY_STATUSWORD:
-        return lambda status: (drive.updates > updates
-                               and shows_standing(status.statusword, None, mode))
-    return lambda status: drive.velocities > velocities and status.velocity == 0
+    updates = drive.updates
+    return lambda status: (drive.updates > updates
+                           and shows_standing(status.statusword, mode))
