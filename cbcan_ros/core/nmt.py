@@ -175,7 +175,7 @@ class HeartbeatMonitor:
 
         Its PDOs are usable then (see ``commanded``).
         """
-        with self._changed:
+        with self._lock:  # not the Condition: asked for every frame a drive is sent
             entry = self._nodes.get(node_id)
             left = max(self._commanded.get(node_id, -math.inf), self._commanded.get(0, -math.inf))
             return (entry is not None and entry.detected and entry.state == OPERATIONAL

@@ -25,8 +25,9 @@ when it heard it; those go out as the drive holds them. A frame carries every ob
 and one the gateway holds no value for would go out as a value of the gateway's making.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import combinations
+import struct
 from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from ..pdo.mapping import PdoMapping
@@ -45,6 +46,10 @@ class Frame:
     indexes: Tuple[int, ...]
     synchronous: bool
     held: Tuple[Tuple[int, int], ...] = ()  # (index, subindex) sent as read from the drive
+    # The whole frame packed at once (``frame_data``), when every entry it maps lies on whole
+    # bytes in the size of its type: the struct and, in mapped order, each entry's source
+    # (a commanded object's index, or a held object's (index, subindex)).
+    layout: Optional[Tuple[struct.Struct, Tuple]] = field(default=None, compare=False)
 
     @property
     def controlword(self) -> bool:
@@ -85,8 +90,43 @@ def usable_frames(rpdos: Mapping[int, PdoMapping], commanded: Iterable[int],
                for entry in others):
             continue
         frames.append(Frame(number, tuple(entry.index for entry in ours), mapping.synchronous,
-                            tuple((entry.index, entry.subindex) for entry in others)))
+                            tuple((entry.index, entry.subindex) for entry in others),
+                            _layout(mapping, ours)))
     return frames
+
+
+def _layout(mapping: PdoMapping, ours: Sequence) -> Optional[Tuple[struct.Struct, Tuple]]:
+    """Return the frame's ``Frame.layout``, or None when an entry is no whole bytes of its type.
+
+    Such a frame goes entry by entry (``PdoService`` merges them into the frame last sent),
+    which also refuses a commanded object mapped in another width than its type's.
+    """
+    formats, sources = ['<'], []
+    for entry in mapping.entries:
+        if entry.dummy or entry.bits % 8:
+            return None
+        if entry in ours:
+            code = cia402.FORMATS[entry.index][1:]
+            if struct.calcsize(code) * 8 != entry.bits:
+                return None
+            formats.append(code)
+            sources.append(entry.index)
+        else:
+            formats.append(f'{entry.bits // 8}s')
+            sources.append((entry.index, entry.subindex))
+    return struct.Struct(''.join(formats)), tuple(sources)
+
+
+def frame_data(frame: Frame, values: Dict[int, int],
+               held: Mapping[Tuple[int, int], bytes]) -> bytes:
+    """Return the whole frame of a ``frame.layout`` with ``values`` (``frame_values``)."""
+    packer, sources = frame.layout
+    try:
+        return packer.pack(*[values[source] if source.__class__ is int else held[source]
+                             for source in sources])
+    except struct.error:
+        raise ValueError(f'RPDO {frame.number}: the values {values} do not fit its '
+                         f'mapping') from None
 
 
 def plan(values: Sequence[int], frames: Sequence[Frame], controlword_known: bool) -> Plan:

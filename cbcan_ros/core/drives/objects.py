@@ -30,7 +30,7 @@ from ..pdo.service import PdoService, REPLACED
 from ..sdo.request_queue import answer, resolved
 from ..sdo.requests import Access, SdoResult
 from . import cia402
-from .frames import Frame, frame_values, Plan, plan, usable_frames
+from .frames import Frame, frame_data, frame_values, Plan, plan, usable_frames
 
 # Feedback objects: what the gateway reads of a drive, in TPDOs or by SDO.
 FEEDBACK = (cia402.STATUSWORD, cia402.MODE_DISPLAY, cia402.POSITION_ACTUAL,
@@ -268,6 +268,11 @@ class DriveObjects:
             futures = []
             for frame in frames:
                 carried = frame_values(frame, commanded, previous, carry_controlword)
+                if frame.layout is not None:
+                    futures.append(self._pdo.write(self.node_id, frame.number,
+                                                   data=frame_data(frame, carried, held),
+                                                   stream=stream))
+                    continue
                 # As bytes of the profile's types, whatever type the PDO service knows.
                 futures.append(self._pdo.write(self.node_id, frame.number, [
                     EntryValue(index, 0, data=encode(index, value))

@@ -110,7 +110,10 @@ class SyncProducer:
         self.counter_overflow = counter_overflow
         self._supervisor = supervisor
         self._network = network
-        self._lock = threading.Condition()
+        # A plain RLock for the sections entered for every frame sent (``open_for_rpdos``);
+        # ``_changed`` waits on it.
+        self._lock = threading.RLock()
+        self._changed = threading.Condition(self._lock)
         # Held while the thread sends a SYNC: a task that ends waits for it, so none follows.
         self._sending = threading.Lock()
         # Held while frames that must reach the devices between the same two SYNCs go out
@@ -155,7 +158,7 @@ class SyncProducer:
         with self._lock:
             self._closing = True
             waiting = self._stop_task()
-            self._lock.notify_all()
+            self._changed.notify_all()
         _run_all(waiting)
         self._network.unsubscribe(SYNC_COB_ID, self._on_sync_heard)
         if self._thread.is_alive():
@@ -167,7 +170,7 @@ class SyncProducer:
             if self._task is None or self._closing:
                 return False
             self._after_sync.append(callback)
-            self._lock.notify_all()
+            self._changed.notify_all()
             return True
 
     def before_next_sync(self, callback: Callable[[], None]) -> bool:
@@ -176,7 +179,7 @@ class SyncProducer:
             if self._task is None or self._closing:
                 return False
             self._before_sync.append(callback)
-            self._lock.notify_all()
+            self._changed.notify_all()
             return True
 
     def hold_while(self, why: Callable[[], Optional[str]]) -> None:
@@ -222,7 +225,7 @@ class SyncProducer:
                 with self._lock:
                     self._cycle_writers -= 1
                     if self._sync_held:  # most messages end long before their SYNC
-                        self._lock.notify_all()
+                        self._changed.notify_all()
 
     def open_for_rpdos(self) -> bool:
         """Return whether a synchronous RPDO sent now is applied at the next SYNC.
@@ -293,7 +296,7 @@ class SyncProducer:
         except BusDown as error:
             LOGGER.warning('SYNC could not be started: %s', error)
             return False
-        self._lock.notify_all()  # the thread's SYNC is due at once
+        self._changed.notify_all()  # the thread's SYNC is due at once
         self._task_start = self._grid_start = grid_start
         self._phases.clear()
         # The gap since a SYNC heard before (a bus down meanwhile) is no period of SYNC.
@@ -322,7 +325,7 @@ class SyncProducer:
                 while not self._closing and not (self._task is not None and (
                         isinstance(self._task, _ThreadTask) or self._after_sync
                         or self._before_sync)):
-                    self._lock.wait()
+                    self._changed.wait()
                 if self._closing:
                     return
                 task, now = self._task, time.monotonic()
@@ -335,7 +338,7 @@ class SyncProducer:
                 before = (self._next_point(1 - RPDO_OFFSET, now) if self._before_sync
                           else never)
                 due = min(sync, after, before)
-                self._lock.wait(max(due - now, 0.0))
+                self._changed.wait(max(due - now, 0.0))
                 if time.monotonic() < due or self._task is not task:
                     continue
                 if sync == due and not self._frames_of_the_cycle_written(due + ONE_CYCLE_WAIT,
@@ -372,7 +375,7 @@ class SyncProducer:
             if left <= 0:
                 break
             self._sync_held = True
-            self._lock.wait(left)
+            self._changed.wait(left)
             self._sync_held = False
         return self._task is task and not self._closing
 
