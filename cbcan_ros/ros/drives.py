@@ -265,35 +265,37 @@ class DriveTopics:
         value that is no target (not finite, too large) is refused whole: the joints of an
         arm apply one control step together or not at all.
         """
-        if not message.name:
+        names = message.name
+        if not names:
             self._log_refusal('joint_commands: a message names no joint, so its values are '
                               "no drive's; nothing was sent")
             return []
-        twice = sorted({name for name in message.name if message.name.count(name) > 1})
-        if twice:
+        if len(set(names)) != len(names):
+            twice = sorted({name for name in names if names.count(name) > 1})
             # Two values for one drive: whichever frame the drive takes last would win.
             self._log_refusal(f'joint_commands: joint {twice[0]!r} is named more than once '
                               f'in the message; which value is its cannot be told, so nothing '
                               f'of the message was sent')
             return []
-        joints = [self._by_name.get(name) for name in message.name]
+        joints = [self._by_name.get(name) for name in names]
         modes = [self._service.status(joint.node_id).mode if joint else None
                  for joint in joints]
         fields = [_field(mode) for mode in modes]
+        arrays = {field: getattr(message, field) for field in set(fields) if field}
         known = all(fields)
         targets, unclear = [], []
-        for n, (name, joint, field) in enumerate(zip(message.name, joints, fields,
-                                                     strict=True)):
+        for n, (name, joint, field) in enumerate(zip(names, joints, fields, strict=True)):
             if joint is None:
                 self._log_refusal(f"joint_commands: joint {name!r} is no drive's (joints: "
                                   f'{", ".join(self._by_name) or "none"}); left out',
                                   OTHER_HARDWARE)
                 continue
-            values = getattr(message, field) if field else ()
-            taking = [k for k, other in enumerate(fields) if other == field]
-            if field and len(values) == len(message.name):
+            values = arrays[field] if field else ()
+            if field and len(values) == len(names):
                 targets.append((joint, values[n]))
-            elif field and known and len(values) == len(taking):
+                continue
+            taking = [k for k, other in enumerate(fields) if other == field]
+            if field and known and len(values) == len(taking):
                 targets.append((joint, values[taking.index(n)]))
             elif field:
                 unclear.append(f'{name!r} ({cia402.mode_name(modes[n])}: {field})')
@@ -304,7 +306,7 @@ class DriveTopics:
         if unclear:
             counts = ', '.join(f'{len(getattr(message, field))} {field}'
                                for field in ('position', 'velocity', 'effort'))
-            self._log_refusal(f'joint_commands: the message names {len(message.name)} joints '
+            self._log_refusal(f'joint_commands: the message names {len(names)} joints '
                               f'and has {counts} values; which value is whose cannot be told '
                               f'for joints {", ".join(unclear)}; nothing was sent to them')
         mode_of = {joint.node_id: mode for joint, mode in zip(joints, modes, strict=True)

@@ -838,6 +838,8 @@ class DriveService:
         failed = (not result.success and REPLACED not in result.message
                   and SHUTTING_DOWN not in result.message
                   and HEARTBEAT_SILENT not in result.message)
+        if not failed and node_id not in self._targets_failing:
+            return  # sent, and no incident open: all but a few of a stream's targets
         now = time.monotonic()
         with self._lock:
             first = failed and node_id not in self._targets_failing
