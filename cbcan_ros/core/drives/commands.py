@@ -40,6 +40,10 @@ MAPPING_WAIT = 2.0
 # position window (at most DEFAULT_WINDOW) in this long: a velocity read may jitter around 0
 # for good, or read 0 in units coarser than the position's while the axis still moves.
 STILL_SPAN = 0.1
+# As long for a halt, whose answer says the axis stands (the velocity reading 0 all along):
+# within a window of 10 counts for this long, an axis still moving creeps at under 35
+# counts/s, and one braking harder than about 220 counts/s² has stood.
+AT_REST_SPAN = 0.3
 # What the answer of a sequence that ended with the axis halted for a mode change adds.
 HELD_FOR_THE_MODE_CHANGE = ('; the axis was halted for the mode change and is held there: call '
                             'enable (in the mode wanted) to go on from where it stands')
@@ -56,6 +60,9 @@ ON_TIMEOUT: contextvars.ContextVar = contextvars.ContextVar('on_timeout', defaul
 # What an enable's answer adds when its time ran out while the halted axis braked.
 STILL_BRAKING = ('; the axis was still braking from its halt and stays halted: call enable '
                  'again once it stands, or give the enable a timeout longer than its ramp')
+# What a halt that timed out adds: the drive holds the halt, whether or not it shows a stand.
+HALT_HOLDS = ('; the halt holds, but the axis was not seen to stand (a drive without 0x606F '
+              'is watched by its velocity and position: see drives.md)')
 
 
 class DriveFailed(Exception):
@@ -441,16 +448,18 @@ class DriveCommands:
         """Return once the halted axis stands: ``_until_standing``'s judgement.
 
         ``until(drive, ok)`` waits for a status and raises when the command cannot go on.
-        ``at_rest``: without 0x606F, the velocity must read 0 as well (a halt answers that
-        the axis stands; a mode change needs it slow enough to hold). A velocity that
-        jitters around 0 then never shows a stand.
+        ``at_rest`` (a halt, which answers that the axis stands; a mode change needs it only
+        slow enough to hold): without 0x606F, the position stays within the window for
+        ``AT_REST_SPAN``, not ``STILL_SPAN``, and the velocity reads 0 all along. A velocity
+        that jitters around 0 then never shows a stand.
         """
         if mode in BY_STATUSWORD:
             await wait_for_standstill(self._service, drive, mode, until, SEND_TIMEOUT,
                                       just_halted)
             return
         window = min(await position_window(drive, SEND_TIMEOUT), DEFAULT_WINDOW)
-        before = None
+        span = AT_REST_SPAN if at_rest else STILL_SPAN
+        loop, reference, since = asyncio.get_running_loop(), None, 0.0
         while True:
             read = await asyncio.wrap_future(self._service.read_feedback(
                 drive, [cia402.VELOCITY_ACTUAL, cia402.POSITION_ACTUAL], SEND_TIMEOUT))
@@ -461,10 +470,11 @@ class DriveCommands:
             if threshold and velocity is not None:
                 if abs(velocity) <= threshold:
                     return
-            elif (before is not None and abs(status.position - before) <= window
-                  and (velocity == 0 or not at_rest)):
+            elif (reference is None or abs(status.position - reference) > window
+                  or (at_rest and velocity != 0)):
+                reference, since = status.position, loop.time()  # from here on
+            elif loop.time() - since >= span:
                 return
-            before = status.position
             await asyncio.sleep(STILL_SPAN)
 
     def _held_for_the_mode(self, drive, held: bool) -> str:
@@ -623,6 +633,7 @@ class DriveCommands:
             # with the controlword could follow another carrying the halt, and a SYNC of
             # another master between the two would apply the older frame the drive holds.
             await self._send(drive, stopping)
+        ON_TIMEOUT.set(HALT_HOLDS)
         await self._standstill(drive)
         await self._read_position(drive)
         position = self._service.status(drive.node_id).position
@@ -871,8 +882,11 @@ class DriveCommands:
             await self._send(drive, {}, halt='cancel')
             async with asyncio.timeout(HALT_WAIT):
                 await self._standstill(drive)
-        except (DriveFailed, TimeoutError) as error:
-            return f'{reason}; the halt was not confirmed: {error or "no standstill"}'
+        except DriveFailed as error:
+            return f'{reason}; the halt was not confirmed: {error}'
+        except TimeoutError:
+            return (f'{reason}; the halt was not confirmed: the axis did not stand within '
+                    f'{HALT_WAIT:g} s (the halt holds)')
         await self._read_position(drive)
         return (f'{reason}: halted at position '
                 f'{self._service.status(drive.node_id).position} (drive units)')

@@ -333,9 +333,13 @@ class DriveObjects:
         if self.node_id not in self._pdo.node_ids:
             return
         with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(asyncio.wrap_future(self._pdo.mapping_read(self.node_id)),
-                                   timeout)
-            await asyncio.wait_for(asyncio.wrap_future(self.read_held(timeout)), timeout)
+            # Known already at nearly every command: no wait (each a few turns of the loop).
+            read = self._pdo.mapping_read(self.node_id)
+            if not read.done():
+                await asyncio.wait_for(asyncio.wrap_future(read), timeout)
+            held = self.read_held(timeout)
+            if not held.done():
+                await asyncio.wait_for(asyncio.wrap_future(held), timeout)
 
     def read_held(self, timeout: float) -> 'Future[None]':
         """Read what its RPDOs map and the gateway has no value of, when not yet.

@@ -663,8 +663,8 @@ class DriveService:
             self._runner.submit(safety.stop_unattended(
                 drive, self._lock, 'ran again by itself after it left OPERATION_ENABLED (a '
                 'frame it held for SYNC, another master)'))
-        if changed or cia402.STATUSWORD in values or cia402.VELOCITY_ACTUAL in values:
-            self._wake(drive)  # a halt waits for a velocity (standstill)
+        if changed or cia402.STATUSWORD in values:
+            self._wake(drive)
 
     def writing(self, node_id: int, index: int, subindex: int,
                 data: bytes) -> Optional[Callable[[bool], None]]:

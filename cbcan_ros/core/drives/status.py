@@ -93,7 +93,6 @@ class DriveRecord:
     unread_state: str = ''  # the state its TPDOs show while it is not re-read yet
     updates: int = 0  # statuswords taken: a waiter asks for one newer than it sent
     tpdos: int = 0  # TPDOs with feedback taken: an SDO read asked after the n-th is newer
-    velocities: int = 0  # velocities taken (TPDO or SDO): a halt waits for one after its read
     from_tpdo: Dict[int, Tuple[int, int]] = field(default_factory=dict)  # index: (n, value)
     _controlword: int = 0  # the controlword the gateway commands (``controlword``)
     halted_by: str = ''  # '', 'command' or 'timeout'
@@ -144,9 +143,8 @@ class DriveRecord:
         self.from_tpdo.update({index: (self.tpdos, value) for index, value in values.items()})
 
     def count(self, values: Dict[int, int]) -> None:
-        """Count the statusword and the velocity among ``values``, taken (its lock held)."""
+        """Count the statusword among ``values``, taken (its lock held)."""
         self.updates += cia402.STATUSWORD in values
-        self.velocities += cia402.VELOCITY_ACTUAL in values
 
     def newest(self, values: Dict[int, int], since: int, reread: bool) -> Dict[int, int]:
         """Return ``values`` read by SDO, asked after ``since`` TPDOs, as the newest known.
