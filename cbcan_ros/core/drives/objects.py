@@ -42,6 +42,9 @@ COMMANDED = frozenset({cia402.CONTROLWORD, cia402.MODE, cia402.TARGET_POSITION,
 # What is read of a drive when it is first heard and after each boot: its feedback, its
 # error and modes, and the commanded values a PDO frame repeats.
 INITIAL_READS = (*FEEDBACK, cia402.ERROR_CODE, cia402.SUPPORTED_MODES, *sorted(COMMANDED))
+# ``read_held``'s answer when there is nothing to read: one shared future, not one a drive and
+# beat of the feedback cycle (2,000 a second at 250 Hz with 8 drives). Done, so never changed.
+NOTHING_TO_READ = resolved(None)
 
 
 def encode(index: int, value: int) -> bytes:
@@ -354,7 +357,7 @@ class DriveObjects:
         reads = self.mapping_reads()
         with self._lock:
             if not reads or reads == self._held_reads:
-                return resolved(None)
+                return NOTHING_TO_READ
             self._held_reads = reads
             known = set(self.commanded)
         _, rpdos = self._pdo.mappings(self.node_id)
@@ -364,7 +367,7 @@ class DriveObjects:
         unknown = sorted(index for index, subindex in mapped
                          if subindex == 0 and index in COMMANDED and index not in known)
         if not others and not unknown:
-            return resolved(None)
+            return NOTHING_TO_READ
         batch = self._sdo_batch([Access(self.node_id, index, sub) for index, sub in others]
                                 + [Access(self.node_id, index, 0) for index in unknown],
                                 timeout)
