@@ -5,11 +5,13 @@ examples: the controlword in exactly one frame, the last; what no RPDO carries b
 no synchronous frame before an event-driven controlword frame.
 """
 
+from struct import pack
+
 import pytest
 
 from cbcan_ros.core.drives import cia402
-from cbcan_ros.core.drives.frames import Frame, frame_values, plan, usable_frames
-from cbcan_ros.core.pdo.mapping import MappedEntry, PdoMapping
+from cbcan_ros.core.drives.frames import Frame, frame_data, frame_values, plan, usable_frames
+from cbcan_ros.core.pdo.mapping import encode, EntryValue, MappedEntry, PdoMapping
 
 CW, MODE, TARGET = cia402.CONTROLWORD, cia402.MODE, cia402.TARGET_POSITION
 VELOCITY, TORQUE = cia402.TARGET_VELOCITY, cia402.TARGET_TORQUE
@@ -104,3 +106,48 @@ def test_an_rpdo_that_maps_another_object_is_used_with_the_bytes_read_from_the_d
     assert usable_frames({4: mapping}, EVERYTHING, False, held) == [
         Frame(4, (CW,), False, ((max_torque, 0),))]
     assert usable_frames({4: mapping}, EVERYTHING, False, {(max_torque, 0): b'\xe8'}) == []
+
+
+def rpdo(*entries):
+    """Return RPDO 1 of node 7 mapping ``entries`` ((index, subindex, bits)), in order."""
+    mapped, offset = [], 0
+    for index, subindex, bits in entries:
+        mapped.append(MappedEntry(index, subindex, bits, offset))
+        offset += bits
+    return PdoMapping(node_id=7, kind='rpdo', number=1, cob_id=0x207, transmission_type=255,
+                      enabled=True, entries=tuple(mapped))
+
+
+HELD = {(0x6072, 0): b'\xe8\x03', (0x2010, 3): b'\x01\x02\x03'}
+VALUES = {CW: 0x1F, MODE: -3, TARGET: -123456, VELOCITY: 70000, TORQUE: -250,
+          cia402.PROFILE_VELOCITY_OBJECT: 4000000000}
+
+
+@pytest.mark.parametrize('entries', [
+    ((CW, 0, 16), (TARGET, 0, 32), (MODE, 0, 8)),          # make run's RPDO 1
+    ((CW, 0, 16), (VELOCITY, 0, 32)),                       # a vendor's RPDO 4
+    ((TARGET, 0, 32), (VELOCITY, 0, 32)),                   # ros2_canopen's RPDO 2
+    ((CW, 0, 16), (0x6072, 0, 16), (TORQUE, 0, 16)),        # with a held object
+    ((0x2010, 3, 24), (CW, 0, 16), (cia402.PROFILE_VELOCITY_OBJECT, 0, 32)),
+], ids=['combined', 'vendor', 'ros2_canopen', 'held', 'vendor_object'])
+def test_a_frame_packed_at_once_is_the_frame_built_entry_by_entry(entries):
+    # Bytes on the bus must not depend on which way a frame was built.
+    mapping = rpdo(*entries)
+    frame, = usable_frames({1: mapping}, VALUES, False, HELD)
+    assert frame.layout is not None
+    by_entries = encode(mapping, bytes(mapping.size), [
+        EntryValue(index, 0, data=pack(cia402.FORMATS[index], VALUES[index]))
+        for index in frame.indexes] + [
+        EntryValue(index, subindex, data=HELD[(index, subindex)])
+        for index, subindex in frame.held])
+    assert frame_data(frame, frame_values(frame, VALUES, None, True), HELD) == by_entries
+
+
+@pytest.mark.parametrize('entries', [
+    ((CW, 0, 16), (0x0005, 0, 8), (TARGET, 0, 32)),         # a dummy entry: kept as it was
+    ((CW, 0, 16), (TARGET, 0, 16)),                         # narrower than its type: refused
+    ((CW, 0, 12), (MODE, 0, 4)),                            # not on whole bytes
+], ids=['dummy', 'narrow', 'bits'])
+def test_a_frame_not_of_whole_typed_bytes_goes_entry_by_entry(entries):
+    frame, = usable_frames({1: rpdo(*entries)}, VALUES, False, HELD)
+    assert frame.layout is None
