@@ -161,3 +161,21 @@ def test_a_refusal_of_the_whole_gateway_is_one_line_an_incident_on_any_topic(cap
     inactive[0] = 'the node is inactive; nothing was sent'
     assert not topics._send_target(Joint(8, 'elbow'), 0.5, 'node_8/target')
     assert len(lines(caplog, 'inactive')) == 2
+
+
+def test_arrays_that_do_not_fit_other_joints_are_a_line_of_their_own(caplog):
+    # Once a defect (red team 18): the lines were told apart by their text with the numbers
+    # left out, so joints named alike but for a digit ('joint_7', 'joint_8') made one kind,
+    # and the second set of joints silently took nothing.
+    caplog.set_level(logging.WARNING, logger='cbcan_ros.ros.drives')
+    topics = DriveTopics.__new__(DriveTopics)  # the message's reading alone
+    status = DriveStatus(1, state='OPERATION_ENABLED', mode=8)  # CSP: takes positions
+    topics._service = SimpleNamespace(status=lambda node_id: replace(status, node_id=node_id))
+    topics._by_name = {f'joint_{node_id}': Joint(node_id, f'joint_{node_id}')
+                       for node_id in (5, 6, 7, 8)}
+    topics._logged = {}
+    for names in (['joint_5', 'joint_6'], ['joint_7', 'joint_8'], ['joint_7', 'joint_8']):
+        assert topics._targets_of(JointState(name=names, position=[0.5])) == []
+    found = lines(caplog, 'which value is whose')
+    assert len(found) == 2, found
+    assert "'joint_7'" in found[1] and "'joint_8'" in found[1], found

@@ -308,7 +308,8 @@ class DriveTopics:
                                for field in ('position', 'velocity', 'effort'))
             self._log_refusal(f'joint_commands: the message names {len(names)} joints '
                               f'and has {counts} values; which value is whose cannot be told '
-                              f'for joints {", ".join(unclear)}; nothing was sent to them')
+                              f'for joints {", ".join(unclear)}; nothing was sent to them',
+                              kind=f'unclear: {", ".join(unclear)}')  # each set of joints
         mode_of = {joint.node_id: mode for joint, mode in zip(joints, modes, strict=True)
                    if joint}
         in_drive_units = []
@@ -360,7 +361,8 @@ class DriveTopics:
             self._logged.pop(incident, None)
         return True
 
-    def _log_refusal(self, problem: str, node_id: Optional[int] = None) -> None:
+    def _log_refusal(self, problem: str, node_id: Optional[int] = None,
+                     kind: Optional[str] = None) -> None:
         """Log a refused target once per kind (numbers and states aside) and incident.
 
         A stream of refused targets is one line, not a log flood; once the drive ``node_id``
@@ -368,9 +370,11 @@ class DriveTopics:
         a whole ``joint_commands`` message (``node_id`` None: its names or values) end once a
         message's drives all take theirs; those of the gateway (``GATEWAY_WIDE``: inactive,
         shutting down) once any target is taken; joints of other hardware
-        (``OTHER_HARDWARE``) once a message names only drives and is taken whole.
+        (``OTHER_HARDWARE``) once a message names only drives and is taken whole. ``kind``:
+        what makes two problems the same, where the text alone does not tell (joint names
+        that differ only in their digits).
         """
-        kind = _STATES_AND_NUMBERS.sub('#', problem)[:100]
+        kind = kind or _STATES_AND_NUMBERS.sub('#', problem)[:100]
         logged = self._logged.setdefault(node_id, set())
         if kind not in logged:
             logged.add(kind)
