@@ -11,6 +11,7 @@ import time
 
 import pytest
 from std_msgs.msg import Float64
+from test_drive_safety import velocity_in_units
 from test_drives import CSV, NODE, rig, WAIT, watch  # noqa: F401 - rig: a fixture used by name
 
 from cbcan_ros.core.drives import cycle as drive_cycle
@@ -111,12 +112,7 @@ def test_a_halt_whose_velocity_reads_0_in_coarse_units_answers_once_the_axis_sta
         rig, deceleration, speed):  # noqa: F811
     axis = rig()
     drive = axis.drive
-    publish = drive._publish
-
-    def in_coarse_units() -> None:  # 0x606C in units of 2,000 counts/s
-        publish()
-        drive.node.object_dictionary.write(0x606C, 0, round(drive._velocity / 2000))
-    drive._publish = in_coarse_units
+    velocity_in_units(drive, 2000)
     drive.cyclic_target_reached = False
     drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', deceleration))
     axis.enable(CSV)

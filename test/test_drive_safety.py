@@ -357,6 +357,20 @@ def rig(start_node, client_node, start_durand):
         each.close()
 
 
+def velocity_in_units(drive: DurandDrive, counts_per_unit: int) -> None:
+    """Have ``drive`` show its velocity (0x606C) in units of ``counts_per_unit`` counts/s.
+
+    As a drive whose velocity is in rpm and its position in an encoder's counts: a coarse
+    unit reads 0 while the axis still moves.
+    """
+    publish = drive._publish
+
+    def in_units() -> None:
+        publish()
+        drive.node.object_dictionary.write(0x606C, 0, round(drive._velocity / counts_per_unit))
+    drive._publish = in_units
+
+
 def standing_still(drive: DurandDrive) -> bool:
     """Return whether the drive is stopped: quick stop or power stage off, velocity 0."""
     return drive.drive_state in STOPPED and drive.velocity == 0

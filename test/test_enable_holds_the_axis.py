@@ -18,7 +18,7 @@ import pytest
 from std_msgs.msg import Float64
 from test_drive_layouts import writes_on_the_bus
 import test_drive_safety
-from test_drive_safety import ANSWER, DriveRig, NODE, RPDOS, shown, VELOCITY
+from test_drive_safety import ANSWER, DriveRig, NODE, RPDOS, shown, VELOCITY, velocity_in_units
 
 from cbcan_ros.core.pdo.sync import SYNC_COB_ID
 from cbcan_ros.simulation.cia402_states import State
@@ -250,12 +250,7 @@ def test_a_mode_change_of_a_drive_that_quick_stopped_by_itself_starts_no_motion(
 def test_an_enable_of_an_axis_braking_from_a_halt_releases_it_standing(rig, velocity_unit):
     axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos('combined'))
     drive = axis.drive
-    publish = drive._publish
-
-    def in_velocity_units() -> None:  # 0x606C in units of velocity_unit counts/s
-        publish()
-        drive.node.object_dictionary.write(0x606C, 0, round(drive._velocity / velocity_unit))
-    drive._publish = in_velocity_units
+    velocity_in_units(drive, velocity_unit)
     axis.wait_state('SWITCH_ON_DISABLED')
     axis.nmt_start()
     assert axis.command('enable', CSP).success

@@ -16,7 +16,7 @@ from typing import Callable
 import pytest
 from rclpy.action import ActionClient
 import test_drive_safety
-from test_drive_safety import ANSWER, COMMAND_TIMEOUT, DriveRig, NODE, VELOCITY
+from test_drive_safety import ANSWER, COMMAND_TIMEOUT, DriveRig, NODE, VELOCITY, velocity_in_units
 from test_enable_holds_the_axis import halt_releases, synchronous
 
 from cbcan_ros.action import DriveMove
@@ -396,12 +396,7 @@ def test_an_enable_that_times_out_while_the_axis_brakes_says_so_and_releases_not
 def test_a_velocity_that_reads_0_in_coarse_units_is_not_taken_for_a_stand(rig):
     axis = moving_in_csv(rig, 'combined')
     drive = axis.drive
-    publish = drive._publish
-
-    def in_coarse_units() -> None:  # 0x606C in units of 2,000 counts/s
-        publish()
-        drive.node.object_dictionary.write(0x606C, 0, round(drive._velocity / 2000))
-    drive._publish = in_coarse_units
+    velocity_in_units(drive, 2000)
     drive.set_value(TARGET_VELOCITY, 0, struct.pack('<i', 800))  # another master's target
     axis.drive_reaches(lambda drive: drive._velocity == 800, 'the axis at 800 counts/s')
     entering = entering_csp(drive)
