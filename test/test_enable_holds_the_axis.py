@@ -282,3 +282,35 @@ def test_an_enable_of_an_axis_braking_from_a_halt_releases_it_standing(rig, velo
     assert enabled.success, enabled.message
     wait_until(lambda: released, ANSWER, "the drive's first cycle with the halt released")
     assert abs(released[0]) <= 100, f'released at velocity {released[0]}'
+
+
+# Red team 17 (R17-3): a halt sent while an enable waits for a braking axis to stand was
+# refused with "needs a fresh enable: call drive_command enable first", the enable being the
+# very request under way. It is refused still (the enable takes the drive over), saying so.
+def test_a_halt_while_an_enable_waits_for_the_axis_says_an_enable_is_under_way(rig):
+    axis = rig('-p', 'drives.command_timeout:=0.0', pdos=layout_pdos('combined'))
+    drive = axis.drive
+    axis.wait_state('SWITCH_ON_DISABLED')
+    axis.nmt_start()
+    assert axis.command('enable', CSV).success
+    wait_until(lambda: axis.publisher.get_subscription_count() > 0, ANSWER, 'a subscriber')
+    drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', 1000))  # 1.5 s from VELOCITY
+    axis.publisher.publish(Float64(data=float(VELOCITY)))
+    axis.drive_reaches(lambda drive: drive._velocity == VELOCITY, 'the axis running in CSV')
+    answers = {}
+    halter = threading.Thread(target=lambda: answers.update(halt=axis.command('halt')))
+    halter.start()
+    axis.drive_reaches(lambda drive: drive._halted and drive._velocity < VELOCITY,
+                       'the axis braking')
+    enabler = threading.Thread(target=lambda: answers.update(enable=axis.command('enable')))
+    enabler.start()
+    wait_until(lambda: 'halt' in answers, ANSWER, 'the halt replaced by the enable')
+    refused = axis.command('halt')
+    braking = drive._velocity
+    enabler.join()
+    halter.join()
+    assert braking > 0, 'the axis stood before the second halt: nothing tested'
+    assert not refused.success and 'is being enabled' in refused.message, refused.message
+    assert answers['enable'].success, answers['enable'].message
+    halted = axis.command('halt')
+    assert halted.success, halted.message

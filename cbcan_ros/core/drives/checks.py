@@ -108,11 +108,17 @@ class RequestChecks:
             drive = self._drives[node_id]
             status = shown(drive)
             heard = drive.heard and drive.ready == drive.read_wanted
+            enabling = drive.enabling
         refusal = self._protection.refuses_write(node_id, cia402.CONTROLWORD)
         if refusal:
             return failed(status, f'{refusal}; {NOTHING_SENT}', abort_codes.LOCAL_CONTROL)
         problem = (SHUTTING_DOWN if self._closing() else self._bus_down()
                    or (None if stopping else state_problem(status, heard, enabled)))
+        if problem and enabled and enabling and status.needs_enable:
+            # Not "call enable": one runs (it may wait for a braking axis to stand).
+            problem = (f'node {node_id} is being enabled: a halt, resume, move or target is '
+                       f'taken once the enable has answered; quick_stop or disable stop the '
+                       f'drive now')
         return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
 
     def target_object(self, status: DriveStatus, index: int) -> Optional[DriveResult]:

@@ -106,7 +106,8 @@ class DriveCommands:
         return await self._own(drive, lambda: sequence(drive, mode), timeout, reads,
                                enabled=command in ENABLED_COMMANDS,
                                halt_on_timeout=command == 'home',
-                               changes_mode=command == 'set_mode')
+                               changes_mode=command == 'set_mode',
+                               enabling=command == 'enable')
 
     async def move(self, drive, position: int, relative: bool, velocity: int,
                    on_feedback: Optional[Callable], token: object, reads: int,
@@ -155,7 +156,8 @@ class DriveCommands:
 
     async def _own(self, drive, sequence: Callable, timeout: Optional[float],
                    reads: Optional[int], token: object = None, enabled: bool = False,
-                   halt_on_timeout: bool = False, changes_mode: bool = False):
+                   halt_on_timeout: bool = False, changes_mode: bool = False,
+                   enabling: bool = False):
         task = asyncio.current_task()
         previous = self._tasks.get(drive.node_id)
         if previous is not None and not previous.done():
@@ -170,6 +172,7 @@ class DriveCommands:
                 self._service.set_enabled(drive, self._still_enabled(drive, True))
         self._tasks[drive.node_id] = task
         self._tokens[task] = token
+        drive.enabling = enabling  # the current sequence's (one attribute: read as it is)
         READS_AT_START.set(reads)  # this task's own context
         ENABLED_ONLY.set(enabled)
         ON_TIMEOUT.set('')
@@ -213,6 +216,7 @@ class DriveCommands:
             self._tokens.pop(task, None)
             if self._tasks.get(node_id) is task:
                 del self._tasks[node_id]
+                drive.enabling = False
 
     def _is_current(self, drive) -> bool:
         """Return whether the running task is still ``drive``'s sequence (none replaced it)."""

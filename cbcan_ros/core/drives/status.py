@@ -113,6 +113,7 @@ class DriveRecord:
     profile_velocity: int = 0  # 0x6081 as read when heard: what a move with velocity 0 uses
     pp_goal: Optional[int] = None  # the last PP set-point given since its enable: relative base
     unwatched: str = ''  # why it would run on if the gateway died (enable refused), or ''
+    enabling: bool = False  # an enable runs on the drives' loop (what a refusal says meanwhile)
     # Ends once the frames of its last command step sent in synchronous RPDOs are applied (an
     # asyncio task of the drives' loop; None: none sent).
     applied_at_sync: Optional[object] = None
