@@ -174,9 +174,9 @@ STATUSES = st.builds(
 
 
 @PURE
-@given(status=STATUSES, heard=st.booleans(), enabled=st.booleans())
-def test_a_state_check_refuses_what_the_drive_cannot_take(status, heard, enabled):
-    problem = state_problem(status, heard, enabled)
+@given(status=STATUSES, heard=st.booleans(), enabled=st.booleans(), enabling=st.booleans())
+def test_a_state_check_refuses_what_the_drive_cannot_take(status, heard, enabled, enabling):
+    problem = state_problem(status, heard, enabled, enabling)
     takes = heard and status.state != cia402.UNKNOWN and (
         not enabled or (status.state == cia402.OPERATION_ENABLED and not status.needs_enable))
     assert (problem is None) == takes, problem
@@ -184,6 +184,11 @@ def test_a_state_check_refuses_what_the_drive_cannot_take(status, heard, enabled
         assert f'node {status.node_id}' in problem
         if enabled and heard and status.faulted:
             assert 'fault_reset' in problem
+        # An enable under way explains only a drive not enabled yet: not one lost or
+        # faulted meanwhile (red team 19 saw "being enabled" of a drive in FAULT).
+        being_enabled = (enabling and enabled and heard and status.state != cia402.UNKNOWN
+                         and not status.faulted)
+        assert ('is being enabled' in problem) == being_enabled, problem
 
 
 @PURE

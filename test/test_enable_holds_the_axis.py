@@ -314,3 +314,4 @@ def test_a_halt_while_an_enable_waits_for_the_axis_says_an_enable_is_under_way(r
     assert answers['enable'].success, answers['enable'].message
     halted = axis.command('halt')
     assert halted.success, halted.message
+

@@ -113,12 +113,7 @@ class RequestChecks:
         if refusal:
             return failed(status, f'{refusal}; {NOTHING_SENT}', abort_codes.LOCAL_CONTROL)
         problem = (SHUTTING_DOWN if self._closing() else self._bus_down()
-                   or (None if stopping else state_problem(status, heard, enabled)))
-        if problem and enabled and enabling and status.needs_enable:
-            # Not "call enable": one runs (it may wait for a braking axis to stand).
-            problem = (f'node {node_id} is being enabled: a halt, resume, move or target is '
-                       f'taken once the enable has answered; quick_stop or disable stop the '
-                       f'drive now')
+                   or (None if stopping else state_problem(status, heard, enabled, enabling)))
         return failed(status, f'{problem}; {NOTHING_SENT}') if problem else None
 
     def target_object(self, status: DriveStatus, index: int) -> Optional[DriveResult]:
@@ -151,10 +146,12 @@ def request_problem(command: str, mode: int, timeout: float) -> Optional[str]:
     return None
 
 
-def state_problem(status: DriveStatus, heard: bool, enabled: bool) -> Optional[str]:
+def state_problem(status: DriveStatus, heard: bool, enabled: bool,
+                  enabling: bool = False) -> Optional[str]:
     """Return why the drive takes no request now, or None.
 
-    ``enabled``: the request needs the drive in OPERATION_ENABLED after an enable of ours.
+    ``enabled``: the request needs the drive in OPERATION_ENABLED after an enable of ours;
+    ``enabling``: an enable of ours runs (``DriveRecord.enabling``).
     """
     node_id = status.node_id
     if not heard or status.state == cia402.UNKNOWN:
@@ -167,6 +164,10 @@ def state_problem(status: DriveStatus, heard: bool, enabled: bool) -> Optional[s
         return (f'node {node_id} is changing its mode (set_mode): targets and commands that '
                 f'need it enabled are taken once that has answered')
     if enabled and (status.state != cia402.OPERATION_ENABLED or status.needs_enable):
+        if enabling:  # not "call enable": one runs (it may wait for a braking axis to stand)
+            return (f'node {node_id} is being enabled: halt, resume, home, moves and targets '
+                    f'are refused until that enable has answered; quick_stop or disable stop '
+                    f'the drive now')
         fresh = ' and needs a fresh enable' if status.needs_enable else ''
         return f'node {node_id} is {status.state}{fresh}: call drive_command enable first'
     return None
