@@ -61,8 +61,8 @@ ON_TIMEOUT: contextvars.ContextVar = contextvars.ContextVar('on_timeout', defaul
 STILL_BRAKING = ('; the axis was still braking from its halt and stays halted: call enable '
                  'again once it stands, or give the enable a timeout longer than its ramp')
 # What a halt that timed out adds: the drive holds the halt, whether or not it shows a stand.
-HALT_HOLDS = ('; the halt holds, but the axis was not seen to stand (a drive without 0x606F '
-              'is watched by its velocity and position: see drives.md)')
+HALT_HOLDS = ('; the halt holds, but the drive did not show a stand in time (how a stand '
+              'is told in each mode: docs/drives.md, halt)')
 
 
 class DriveFailed(Exception):
