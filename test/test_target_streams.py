@@ -1107,3 +1107,32 @@ def test_a_frame_waiting_for_a_sync_that_was_skipped_waits_for_the_next_one_sent
     finally:
         bus.release.set()
         producer.stop()
+
+
+def test_a_repeat_the_late_sync_thread_missed_the_point_of_still_goes_before_its_sync():
+    # Seen in the 250 Hz bench with the machine loaded: cycles whose drives got no frame at
+    # all. The SYNC thread, held up past a quarter period before the SYNC (the point where a
+    # stream's last frame is sent again for a cycle its caller left without one), moved that
+    # repeat to the next cycle: the cycle went without a frame. Late, it goes right before
+    # the SYNC it is for.
+    period = 0.2
+    bus = _CountingBus()
+    producer = sending_sync(bus, period)
+    held = threading.Event()
+    try:
+        wait_until(lambda: bus.order, ANSWER, 'the first SYNC')
+        first = producer.next_point(0.0) - period
+        assert producer.after_next_sync(lambda: (held.set(), bus.release.wait(ANSWER)))
+        wait_until(held.is_set, ANSWER, 'the SYNC thread held up after the second SYNC')
+        sent = len(bus.order)
+        # Now past the repeat point of the next SYNC, not yet half a period past that SYNC.
+        wait_until(lambda: time.monotonic() > first + (sent - 0.2) * period, ANSWER,
+                   'the thread past the repeat point')
+        assert producer.before_next_sync(lambda: bus.order.append('REPEAT'))
+        bus.release.set()
+        wait_until(lambda: len(bus.order) >= sent + 2, ANSWER, 'the repeat and a SYNC')
+        assert bus.order[sent:sent + 2] == ['REPEAT', 'SYNC'], (
+            f'{bus.order[sent:]}: the repeat went after the SYNC it was for')
+    finally:
+        bus.release.set()
+        producer.stop()

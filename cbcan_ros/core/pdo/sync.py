@@ -65,12 +65,14 @@ class _ThreadTask:
 
     ``sent``: the last grid cycle whose SYNC was sent or skipped (-1: none yet); ``count``:
     SYNCs sent, which picks the counter's frame; ``sent_at``: when the last one went out
-    (monotonic; None: none yet); ``sending``: held while the thread sends one.
+    (monotonic; None: none yet); ``sending``: held while the thread sends one;
+    ``before_ran``: the grid cycle whose SYNC the callbacks before it last ran for.
     """
 
     def __init__(self, frames: List[can.Message], sending: threading.Lock):
         self.frames = frames
         self.sent = -1
+        self.before_ran = -1
         self.count = 0
         self.sent_at: Optional[float] = None
         self._sending = sending
@@ -332,11 +334,17 @@ class SyncProducer:
                 if isinstance(task, _ThreadTask):
                     sync = self._grid_start + (task.sent + 1) * self.period
                     after = never  # run right after the SYNC sent
+                    # Before this SYNC however late the thread is: a stream's repeat that
+                    # missed its point still reaches the devices in its cycle, where waiting
+                    # for the next point left the cycle without a frame. Once run for this
+                    # SYNC, the callbacks added since are the next one's.
+                    before = sync + ((task.before_ran == task.sent + 1)
+                                     - RPDO_OFFSET) * self.period
                 else:
                     sync = never
                     after = self._next_point(RPDO_OFFSET, now) if self._after_sync else never
-                before = (self._next_point(1 - RPDO_OFFSET, now) if self._before_sync
-                          else never)
+                    before = self._next_point(1 - RPDO_OFFSET, now)
+                before = before if self._before_sync else never
                 due = min(sync, after, before)
                 self._changed.wait(max(due - now, 0.0))
                 if time.monotonic() < due or self._task is not task:
@@ -349,6 +357,8 @@ class SyncProducer:
                     callbacks, self._after_sync = self._after_sync, []
                 if before == due:
                     callbacks, self._before_sync = callbacks + self._before_sync, []
+                    if isinstance(task, _ThreadTask):
+                        task.before_ran = task.sent + 1
             if sync == due:
                 cycle, sent_at, refused = self._send_sync(task)
                 with self._lock:  # a frame held back until now goes out right after it
