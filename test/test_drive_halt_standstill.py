@@ -6,8 +6,11 @@ own velocity: "halted" must never be answered while the axis still turns, and a 
 axis must not be left waiting for a frame that never comes.
 """
 
+import asyncio
+import contextlib
 import struct
 import time
+from types import SimpleNamespace
 
 import pytest
 from std_msgs.msg import Float64
@@ -15,7 +18,9 @@ from test_drive_safety import velocity_in_units
 from test_drives import CSV, NODE, rig, WAIT, watch  # noqa: F401 - rig: a fixture used by name
 
 from cbcan_ros.core.drives import cycle as drive_cycle
+from cbcan_ros.core.drives.commands import DriveCommands
 from cbcan_ros.core.drives.standstill import shows_standing
+from cbcan_ros.core.sdo.request_queue import resolved
 from cbcan_ros.simulation.durand.drive_objects import POSITION_ACTUAL, PROFILE_ACCELERATION
 from cbcan_ros.simulation.durand.drive_pdos import (
     COMMAND,
@@ -221,3 +226,26 @@ def carries_500(message) -> bool:
 def test_standstill_is_read_from_signs_that_cannot_be_left_over_from_before_the_halt(
         mode, statusword, standing):
     assert shows_standing(statusword, mode) == standing
+
+
+@pytest.mark.parametrize('at_rest', [False, True], ids=['mode_change', 'halt'])
+def test_positions_not_read_are_no_stand(at_rest):
+    # Seen once on a fresh clone with the machine loaded past its two cores: a CSV axis
+    # braking at 1,278 counts/s entered CSP, judged standing. The judgement compared the
+    # last position known, which a read that failed (timed out on a starved machine) left as
+    # it was: two alike passed for a stand. Only positions read then count.
+    service = SimpleNamespace(read_feedback=lambda drive, indexes, timeout: resolved({}))
+    commands = DriveCommands.__new__(DriveCommands)
+    commands._service = service
+    drive = SimpleNamespace(node_id=NODE, position_window=10)
+
+    async def until(_drive, _ok):
+        return SimpleNamespace(position=1000)  # the last one known, never read again
+
+    async def judged() -> bool:
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(0.6):  # three times the span a stand needs
+                await commands._stands(drive, CSV, 0, False, until, at_rest=at_rest)
+                return True
+        return False
+    assert not asyncio.run(judged()), 'a stand judged on positions that were never read'

@@ -467,16 +467,21 @@ class DriveCommands:
         while True:
             read = await asyncio.wrap_future(self._service.read_feedback(
                 drive, [cia402.VELOCITY_ACTUAL, cia402.POSITION_ACTUAL], SEND_TIMEOUT))
-            status = await until(drive, lambda s: True)
+            await until(drive, lambda s: True)
             velocity = read.get(cia402.VELOCITY_ACTUAL)
+            # Only a position read now: a read that failed (a loaded machine, a busy drive)
+            # leaves the last one known, and two alike would pass for a stand.
+            position = read.get(cia402.POSITION_ACTUAL)
             # Not a velocity of 0 alone: in units coarser than the position's (rpm against an
             # encoder's counts), a braking axis reads 0 long before it stands.
             if threshold and velocity is not None:
                 if abs(velocity) <= threshold:
                     return
-            elif (reference is None or abs(status.position - reference) > window
+            elif position is None:
+                reference = None  # nothing to judge by: the next read begins again
+            elif (reference is None or abs(position - reference) > window
                   or (at_rest and velocity != 0)):
-                reference, since = status.position, loop.time()  # from here on
+                reference, since = position, loop.time()  # from here on
             elif loop.time() - since >= span:
                 return
             await asyncio.sleep(STILL_SPAN)
