@@ -16,6 +16,7 @@ RPDO 1, target velocity and torque in RPDO 2) and the vendor default (the contro
 RPDO, the target velocity beside it in RPDO 4).
 """
 
+import contextlib
 from dataclasses import dataclass, replace
 import math
 import signal
@@ -1076,15 +1077,14 @@ def test_a_message_begun_past_the_cut_off_waits_whole_for_the_sync():
         producer.stop()
 
 
-def test_a_frame_waiting_for_a_sync_that_was_skipped_waits_for_the_next_one_sent():
-    # The gateway's SYNC thread runs late (held up here by a callback of the SYNC before:
-    # on a machine, a busy process) past half a period after a SYNC was due: that SYNC is
-    # skipped. A frame that waits for "the next SYNC" must still go out after a SYNC, not at
-    # the moment of the skipped one: else the drive holds it together with a stream's frame
-    # sent before the skipped SYNC (the grid says that SYNC applied it, so a halt does not
-    # send it again carrying the halt), and applies both at the same SYNC, the older
-    # controlword in the later RPDO undoing the halt.
-    period = 0.2
+@contextlib.contextmanager
+def sync_thread_late(late: float, period: float = 0.2):
+    """Yield (producer, bus, sent) with the SYNC thread late for the next SYNC.
+
+    Held up after a SYNC (by a callback of that SYNC: on a machine, a busy process) until
+    ``late`` periods past the grid point of the next one (negative: before it);
+    ``bus.release`` lets it go on. ``sent``: the SYNCs before the next one.
+    """
     bus = _CountingBus()
     producer = sending_sync(bus, period)
     held = threading.Event()
@@ -1096,17 +1096,27 @@ def test_a_frame_waiting_for_a_sync_that_was_skipped_waits_for_the_next_one_sent
         assert producer.after_next_sync(lambda: (held.set(), bus.release.wait(ANSWER)))
         wait_until(held.is_set, ANSWER, 'the SYNC thread held up after the second SYNC')
         sent = len(bus.order)
-        # Now late for the next SYNC by more than half a period: it will be skipped.
-        wait_until(lambda: time.monotonic() > first + (sent + 0.65) * period, ANSWER,
-                   'the thread late by more than half a period')
+        wait_until(lambda: time.monotonic() > first + (sent + late) * period, ANSWER,
+                   f'the thread late by {late} of a period')
+        yield producer, bus, sent
+    finally:
+        bus.release.set()
+        producer.stop()
+
+
+def test_a_frame_waiting_for_a_sync_that_was_skipped_waits_for_the_next_one_sent():
+    # The gateway's SYNC thread runs late past half a period after a SYNC was due: that SYNC
+    # is skipped. A frame that waits for "the next SYNC" must still go out after a SYNC, not
+    # at the moment of the skipped one: else the drive holds it together with a stream's
+    # frame sent before the skipped SYNC (the grid says that SYNC applied it, so a halt does
+    # not send it again carrying the halt), and applies both at the same SYNC, the older
+    # controlword in the later RPDO undoing the halt.
+    with sync_thread_late(0.65) as (producer, bus, sent):  # the next SYNC will be skipped
         assert producer.after_next_sync(lambda: bus.order.append('RPDO'))
         bus.release.set()
         wait_until(lambda: 'RPDO' in bus.order, ANSWER, 'the frame sent')
         assert bus.order[sent:sent + 2] == ['SYNC', 'RPDO'], (
             f'{bus.order[sent:]}: the frame went out with no SYNC before it')
-    finally:
-        bus.release.set()
-        producer.stop()
 
 
 def test_a_repeat_the_late_sync_thread_missed_the_point_of_still_goes_before_its_sync():
@@ -1115,24 +1125,9 @@ def test_a_repeat_the_late_sync_thread_missed_the_point_of_still_goes_before_its
     # stream's last frame is sent again for a cycle its caller left without one), moved that
     # repeat to the next cycle: the cycle went without a frame. Late, it goes right before
     # the SYNC it is for.
-    period = 0.2
-    bus = _CountingBus()
-    producer = sending_sync(bus, period)
-    held = threading.Event()
-    try:
-        wait_until(lambda: bus.order, ANSWER, 'the first SYNC')
-        first = producer.next_point(0.0) - period
-        assert producer.after_next_sync(lambda: (held.set(), bus.release.wait(ANSWER)))
-        wait_until(held.is_set, ANSWER, 'the SYNC thread held up after the second SYNC')
-        sent = len(bus.order)
-        # Now past the repeat point of the next SYNC, not yet half a period past that SYNC.
-        wait_until(lambda: time.monotonic() > first + (sent - 0.2) * period, ANSWER,
-                   'the thread past the repeat point')
+    with sync_thread_late(-0.2) as (producer, bus, sent):  # past the repeat point
         assert producer.before_next_sync(lambda: bus.order.append('REPEAT'))
         bus.release.set()
         wait_until(lambda: len(bus.order) >= sent + 2, ANSWER, 'the repeat and a SYNC')
         assert bus.order[sent:sent + 2] == ['REPEAT', 'SYNC'], (
             f'{bus.order[sent:]}: the repeat went after the SYNC it was for')
-    finally:
-        bus.release.set()
-        producer.stop()
