@@ -410,14 +410,9 @@ class DriveCommands:
         if await velocity_threshold(drive, SEND_TIMEOUT):
             return True
         window = min(await position_window(drive, SEND_TIMEOUT), DEFAULT_WINDOW)
-
-        async def position() -> Optional[int]:  # None when not read: nothing confirmed
-            read = await asyncio.wrap_future(self._service.read_feedback(
-                drive, [cia402.POSITION_ACTUAL], SEND_TIMEOUT))
-            return read.get(cia402.POSITION_ACTUAL)
-        before = await position()
+        before = await self._read_position(drive)
         await asyncio.sleep(STILL_SPAN)
-        after = await position()
+        after = await self._read_position(drive)  # a position not read confirms nothing
         return before is not None and after is not None and abs(after - before) <= window
 
     async def _until_standing(self, drive, mode: int, threshold: int, halting: bool) -> None:
@@ -814,9 +809,11 @@ class DriveCommands:
         return here, missed(drive.node_id, wanted, here, window,
                             read.get(cia402.TARGET_POSITION))
 
-    async def _read_position(self, drive) -> None:
-        await asyncio.wrap_future(self._service.read_feedback(drive, [cia402.POSITION_ACTUAL],
-                                                              SEND_TIMEOUT))
+    async def _read_position(self, drive) -> Optional[int]:
+        """Read the drive's position by SDO (taken as its status); None when not read."""
+        read = await asyncio.wrap_future(self._service.read_feedback(
+            drive, [cia402.POSITION_ACTUAL], SEND_TIMEOUT))
+        return read.get(cia402.POSITION_ACTUAL)
 
     async def _stream(self, drive) -> str:
         """Hand the drive each set-point given; then check it arrived at the last one.
