@@ -3,10 +3,11 @@
 :class:`DurandDrive` is a :class:`DurandDevice` (NMT, SDO, heartbeat, EMCY, PDOs) with the drive
 objects of CiA 402. It follows the power state machine (``cia402_states``) on every write of
 the controlword: by SDO within that write, by RPDO once every object of the frame is written.
-One tick on the shared durand scheduler (every ``tick`` seconds) moves the simulated axis in
-the mode of operation: profile position (set-point handshake), profile velocity, homing, and
-the cyclic synchronous position, velocity and torque modes. A consumer heartbeat (0x1016)
-watches the master: its loss while the drive is enabled brings the reaction of 0x6007.
+One tick on the shared durand scheduler (every ``tick`` seconds), or an SDO request that
+finds a tick overdue, moves the simulated axis in the mode of operation: profile position
+(set-point handshake), profile velocity, homing, and the cyclic synchronous position,
+velocity and torque modes. A consumer heartbeat (0x1016) watches the master: its loss
+while the drive is enabled brings the reaction of 0x6007.
 
 Units are whatever the master makes of them: positions in counts, velocities in counts/s,
 accelerations in counts/s², torque in thousandths of rated torque.
@@ -348,9 +349,21 @@ class DurandDrive(DurandDevice):
         self._publish()
 
     def _on_tick(self) -> None:
+        self._tick_timer = shared_scheduler().add(self.tick, self._on_tick)
+        self._step()
+
+    def _on_sdo_frame(self, durand_handler, cob_id: int, data: bytes) -> None:
+        # A real drive's actual values are as new as its control cycle, whatever its bus does.
+        # This one's tick runs on a thread a loaded machine can hold up for longer than a
+        # master's standstill check (0.1 s): a read would then find the axis frozen in motion.
+        if self._tick_timer is not None and time.monotonic() - self._last_tick >= self.tick:
+            self._step()
+        super()._on_sdo_frame(durand_handler, cob_id, data)
+
+    def _step(self) -> None:
+        """Move the axis on by the time since the last step, and publish what changed."""
         now = time.monotonic()
         elapsed, self._last_tick = now - self._last_tick, now
-        self._tick_timer = shared_scheduler().add(self.tick, self._on_tick)
         state = self._drive_state
         if state is State.FAULT_REACTION_ACTIVE:
             self._drive_state = State.FAULT
