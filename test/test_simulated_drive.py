@@ -143,7 +143,10 @@ class Axis:
         def check():
             seen[:] = [self.get(name)]
             return condition(seen[0])
-        wait_until(check, WAIT, f'{what} ({name} last {seen})')
+        try:
+            wait_until(check, WAIT, what)
+        except AssertionError as timed_out:  # the value as it was last read, not before
+            raise AssertionError(f'{timed_out} ({name} last read {seen})') from None
         return seen[0]
 
     def enable(self, mode: int = 0) -> None:
