@@ -7,6 +7,7 @@ action. What the drive did is read from the drive itself; conditions are waited 
 generous ceilings, never proved by sleeping.
 """
 
+import asyncio
 import contextlib
 import logging
 import math
@@ -25,7 +26,12 @@ from cbcan_ros.core.nmt import OPERATIONAL
 from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
 from cbcan_ros.simulation.durand.drive import DurandDrive
-from cbcan_ros.simulation.durand.drive_objects import PROFILE_ACCELERATION, QUICK_STOP_OPTION
+from cbcan_ros.simulation.durand.drive_objects import (
+    HOMING_METHOD,
+    PROFILE_ACCELERATION,
+    PROFILE_VELOCITY,
+    QUICK_STOP_OPTION,
+)
 from cbcan_ros.simulation.durand.drive_pdos import default_drive_pdos
 
 from conftest import Harness, new_channel, wait_for_future, wait_until
@@ -449,6 +455,54 @@ def test_homing_answers_when_the_drive_shows_homing_attained(rig):
     homed = axis.command('home')
     assert homed.success, homed.message
     assert (homed.mode, homed.statusword & 0x1400) == (HOMING, 0x1400)
+
+
+# Once a defect (a red team's): a homing replaced just after the drive showed homing attained
+# answered only "replaced", though the homing had set the drive's position.
+def test_a_homing_replaced_after_the_drive_homed_says_its_position_was_set(rig):
+    axis = rig()
+    axis.enable(CSV)
+    commands = axis.gateway.node.gateway.drives._commands
+    homed_here = commands._homed_here
+    attained = threading.Event()
+
+    async def held_up(drive) -> str:  # the answer's checks, held until a newer command
+        attained.set()
+        await asyncio.sleep(60.0)
+        return await homed_here(drive)
+    commands._homed_here = held_up
+    answers = []
+    homing = threading.Thread(target=lambda: answers.append(axis.command('home')))
+    homing.start()
+    try:
+        assert attained.wait(WAIT), 'the drive never showed homing attained'
+        assert axis.command('disable').success
+    finally:
+        homing.join()
+    assert not answers[0].success
+    assert 'replaced' in answers[0].message, answers[0].message
+    assert 'homing attained' in answers[0].message, answers[0].message
+    assert 'home position' in answers[0].message, answers[0].message
+
+
+def test_a_homing_replaced_on_its_way_home_says_nothing_of_a_home_position(rig):
+    axis = rig()
+    axis.enable(CSV)
+    axis.drive.set_value(HOMING_METHOD, 0, struct.pack('<b', 1))  # travels, not home here
+    axis.drive.set_value(PROFILE_VELOCITY, 0, struct.pack('<I', 1))  # at 1 count/s
+    axis.target.publish(Float64(data=1.0))
+    wait_until(lambda: axis.drive.position > 100, WAIT, 'the axis away from home')
+    answers = []
+    homing = threading.Thread(target=lambda: answers.append(axis.command('home')))
+    homing.start()
+    try:
+        wait_until(lambda: axis.drive._read(0x6060) == HOMING and axis.drive.velocity == -1,
+                   WAIT, 'the drive on its way home')
+        assert axis.command('disable').success
+    finally:
+        homing.join()
+    assert 'replaced' in answers[0].message, answers[0].message
+    assert 'homing attained' not in answers[0].message, answers[0].message
 
 
 def test_set_mode_holds_the_axis_and_answers_in_the_new_mode(rig):

@@ -57,6 +57,11 @@ ENABLED_ONLY: contextvars.ContextVar = contextvars.ContextVar('enabled_only', de
 TIME_LIMIT: contextvars.ContextVar = contextvars.ContextVar('time_limit', default=None)
 # What the answer of a sequence adds when its time runs out now ('' = nothing).
 ON_TIMEOUT: contextvars.ContextVar = contextvars.ContextVar('on_timeout', default='')
+# The running homing's start (the statuswords taken before it), and whether it was seen
+# attained: a homing ended early by a newer command says that it had set the position.
+HOMING_STARTED: contextvars.ContextVar = contextvars.ContextVar('homing_started', default=None)
+HOMING_ATTAINED: contextvars.ContextVar = contextvars.ContextVar('homing_attained',
+                                                                 default=False)
 # What an enable's answer adds when its time ran out while the halted axis braked.
 STILL_BRAKING = ('; the axis was still braking from its halt and stays halted: call enable '
                  'again once it stands, or give the enable a timeout longer than its ramp')
@@ -176,6 +181,8 @@ class DriveCommands:
         READS_AT_START.set(reads)  # this task's own context
         ENABLED_ONLY.set(enabled)
         ON_TIMEOUT.set('')
+        HOMING_STARTED.set(None)
+        HOMING_ATTAINED.set(False)
         service, node_id = self._service, drive.node_id
         try:
             # In this task (not wait_for's own): a cancel reaches the sequence at once, and
@@ -197,12 +204,13 @@ class DriveCommands:
                        f'(statusword 0x{status.statusword:04X}, mode {status.mode})'
                        f'{ON_TIMEOUT.get()}')
             held = _halted_for_a_mode(drive)  # before the timeout's halt takes its place
+            message += self._homed_meanwhile(drive)
             if halt_on_timeout:  # a motion that did not end in time does not run on
                 message = await self._halt_answered(drive, task, message)
             return DriveResult(False, message + self._held_for_the_mode(drive, held),
                                service.status(node_id))
         except asyncio.CancelledError:
-            reason = self._reasons.pop(task, SHUTTING_DOWN)
+            reason = self._reasons.pop(task, SHUTTING_DOWN) + self._homed_meanwhile(drive)
             held = _halted_for_a_mode(drive)  # before the cancel's halt takes its place
             halting = task in self._halt_when_cancelled
             self._halt_when_cancelled.discard(task)
@@ -217,6 +225,24 @@ class DriveCommands:
             if self._tasks.get(node_id) is task:
                 del self._tasks[node_id]
                 drive.enabling = False
+
+    def _homed_meanwhile(self, drive) -> str:
+        """Return what the answer of a homing that ended early adds when the drive had homed.
+
+        Its position counts from the home position from then on, whatever ended the
+        sequence before it could answer (a newer command, a cancel, its time). Also when the
+        statusword showing it came but was not taken by the sequence yet.
+        """
+        started = HOMING_STARTED.get()
+        if started is None:
+            return ''
+        status = self._service.status(drive.node_id)
+        attained = HOMING_ATTAINED.get() or (
+            drive.updates > started and status.mode == cia402.HOMING
+            and bool(status.statusword & cia402.MODE_BIT_12) and status.target_reached)
+        return (f'; node {drive.node_id} had shown homing attained before that (statusword '
+                f'bits 10 and 12): its position counts from the home position now '
+                f'({status.position} in drive units)' if attained else '')
 
     def _is_current(self, drive) -> bool:
         """Return whether the running task is still ``drive``'s sequence (none replaced it)."""
@@ -727,9 +753,11 @@ class DriveCommands:
         if drive.controlword & cia402.NEW_SET_POINT:
             await self._send(drive, {cia402.CONTROLWORD: word})
         mark = await self._send(drive, {cia402.CONTROLWORD: word | cia402.NEW_SET_POINT})
+        HOMING_STARTED.set(mark)
         status = await self._after(drive, mark, lambda s: bool(
             s.statusword & cia402.MODE_BIT_13
             or (s.statusword & cia402.MODE_BIT_12 and s.target_reached)))
+        HOMING_ATTAINED.set(not status.statusword & cia402.MODE_BIT_13)
         await self._send(drive, {cia402.CONTROLWORD: word})
         if status.statusword & cia402.MODE_BIT_13:
             raise DriveFailed(f'node {drive.node_id}: homing failed (statusword bit 13, '
