@@ -459,7 +459,8 @@ def test_homing_answers_when_the_drive_shows_homing_attained(rig):
 
 # Once a defect (a red team's): a homing replaced just after the drive showed homing attained
 # answered only "replaced", though the homing had set the drive's position.
-def test_a_homing_replaced_after_the_drive_homed_says_its_position_was_set(rig):
+@pytest.mark.parametrize('ended_by', ['replaced', 'timed out'])
+def test_a_homing_ended_after_the_drive_homed_says_its_position_was_set(rig, ended_by):
     axis = rig()
     axis.enable(CSV)
     commands = axis.gateway.node.gateway.drives._commands
@@ -472,15 +473,18 @@ def test_a_homing_replaced_after_the_drive_homed_says_its_position_was_set(rig):
         return await homed_here(drive)
     commands._homed_here = held_up
     answers = []
-    homing = threading.Thread(target=lambda: answers.append(axis.command('home')))
+    timeout = 3.0 if ended_by == 'timed out' else 0.0
+    homing = threading.Thread(
+        target=lambda: answers.append(axis.command('home', timeout=timeout)))
     homing.start()
     try:
         assert attained.wait(WAIT), 'the drive never showed homing attained'
-        assert axis.command('disable').success
+        if ended_by == 'replaced':
+            assert axis.command('disable').success
     finally:
         homing.join()
     assert not answers[0].success
-    assert 'replaced' in answers[0].message, answers[0].message
+    assert ended_by in answers[0].message, answers[0].message
     assert 'homing attained' in answers[0].message, answers[0].message
     assert 'home position' in answers[0].message, answers[0].message
 
