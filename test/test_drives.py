@@ -509,6 +509,46 @@ def test_a_homing_replaced_on_its_way_home_says_nothing_of_a_home_position(rig):
     assert 'homing attained' not in answers[0].message, answers[0].message
 
 
+# Once a race (read in the code): an enable replacing a set_mode left the drive enabled for
+# the loop turns before the enable's own first step, so a halt or move checked then was taken
+# (and replaced the enable), where one checked a moment later was refused.
+def test_a_halt_as_an_enable_replaces_a_set_mode_is_refused_as_one_during_the_enable(rig):
+    axis = rig()
+    axis.enable(CSV)
+    axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', 1000))  # brakes in 1 s
+    axis.target.publish(Float64(data=1.0))
+    wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    commands = axis.gateway.node.gateway.drives._commands
+    mapping_known = commands._mapping_known
+    entered, go_on = threading.Event(), threading.Event()
+
+    async def held(drive) -> None:  # the enable's first wait, held while the halt is checked
+        entered.set()
+        while not go_on.is_set():
+            await asyncio.sleep(0.01)
+        await mapping_known(drive)
+    answers = {}
+    changing = threading.Thread(
+        target=lambda: answers.update(set_mode=axis.command('set_mode', CSP)))
+    changing.start()
+    enabling = threading.Thread(
+        target=lambda: answers.update(enable=axis.command('enable', CSP)))
+    try:
+        wait_until(lambda: axis.drive.velocity < 1000, WAIT, 'the axis braking for set_mode')
+        commands._mapping_known = held
+        enabling.start()
+        assert entered.wait(WAIT), 'the enable never began'
+        halted = axis.command('halt')
+    finally:
+        go_on.set()
+        changing.join()
+        if enabling.is_alive():
+            enabling.join()
+    assert not halted.success and 'being enabled' in halted.message, halted.message
+    assert 'replaced' in answers['set_mode'].message, answers['set_mode'].message
+    assert answers['enable'].success, answers['enable'].message
+
+
 def test_set_mode_holds_the_axis_and_answers_in_the_new_mode(rig):
     axis = rig()
     axis.enable(CSV)

@@ -164,6 +164,8 @@ class DriveCommands:
                    halt_on_timeout: bool = False, changes_mode: bool = False,
                    enabling: bool = False):
         task = asyncio.current_task()
+        # First: a request checked from here on sees the enable under way.
+        drive.enabling = enabling  # the current sequence's (one attribute: read as it is)
         previous = self._tasks.get(drive.node_id)
         if previous is not None and not previous.done():
             # A cancel not taken yet keeps its reason: the caller asked for it first.
@@ -173,11 +175,13 @@ class DriveCommands:
             previous.cancel()
             if previous in self._mode_changes and not changes_mode:
                 # Now, not when the set_mode ends (later): the command replacing it needs
-                # the drive as it was before (a halt, a move); a set_mode takes it over.
-                self._service.set_enabled(drive, self._still_enabled(drive, True))
+                # the drive as it was before (a halt, a move); a set_mode takes it over. An
+                # enable leaves it to be enabled: a halt or move checked before the enable
+                # reaches its own step is refused as one checked during it.
+                self._service.set_enabled(drive, not enabling
+                                          and self._still_enabled(drive, True))
         self._tasks[drive.node_id] = task
         self._tokens[task] = token
-        drive.enabling = enabling  # the current sequence's (one attribute: read as it is)
         READS_AT_START.set(reads)  # this task's own context
         ENABLED_ONLY.set(enabled)
         ON_TIMEOUT.set('')
