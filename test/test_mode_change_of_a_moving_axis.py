@@ -389,6 +389,22 @@ def test_an_enable_that_times_out_while_the_axis_brakes_says_so_and_releases_not
     axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis held at a stand')
 
 
+# Once a wrong hint (a red team's): after a set_mode timed out with the axis braking, an
+# enable in the mode wanted that timed out too told its caller to call enable in the mode
+# wanted, which it had just done, instead of that the axis was still braking.
+def test_an_enable_after_a_set_mode_that_timed_out_says_the_axis_still_brakes(rig):
+    axis = moving_in_csv(rig, 'combined', LONG_RAMP)
+    changed = axis.command('set_mode', CSP, timeout=0.2)
+    assert not changed.success and 'halted for the mode change' in changed.message, changed
+    enabled = axis.command('enable', CSP, timeout=0.2)
+    assert not enabled.success
+    assert 'still braking' in enabled.message, enabled.message
+    assert 'halted for the mode change' not in enabled.message, enabled.message
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis braked to a stand')
+    again = axis.command('enable', CSP)
+    assert again.success, again.message
+
+
 # Once a defect (a red team's): before it halted anything, a mode change took a velocity
 # (0x606C) that read 0 for a standing axis. A drive without 0x606F whose velocity unit is
 # coarse (rpm against an encoder's counts) reads 0 while its axis still moves: a CSV axis at

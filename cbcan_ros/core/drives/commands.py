@@ -203,15 +203,17 @@ class DriveCommands:
             return DriveResult(False, f'{failure}{held}', service.status(node_id),
                                failure.abort_code)
         except TimeoutError:
-            status = service.status(node_id)
+            status, said = service.status(node_id), ON_TIMEOUT.get()
             message = (f'timed out after {timeout:g} s: node {node_id} is {status.state} '
-                       f'(statusword 0x{status.statusword:04X}, mode {status.mode})'
-                       f'{ON_TIMEOUT.get()}')
+                       f'(statusword 0x{status.statusword:04X}, mode {status.mode}){said}')
             held = _halted_for_a_mode(drive)  # before the timeout's halt takes its place
             message += self._homed_meanwhile(drive)
             if halt_on_timeout:  # a motion that did not end in time does not run on
                 message = await self._halt_answered(drive, task, message)
-            return DriveResult(False, message + self._held_for_the_mode(drive, held),
+            held_note = self._held_for_the_mode(drive, held)
+            # An enable that ran out while the axis braked says how to go on already; the
+            # mode change's note would tell its caller to call enable, as it just did.
+            return DriveResult(False, message + ('' if said == STILL_BRAKING else held_note),
                                service.status(node_id))
         except asyncio.CancelledError:
             reason = self._reasons.pop(task, SHUTTING_DOWN) + self._homed_meanwhile(drive)
@@ -595,8 +597,7 @@ class DriveCommands:
             # a halt, a cancelled move, the command timeout) is waited for as a mode change
             # waits, within the command's time. Released earlier, a drive that ramps its halt
             # in CSP would stop short of the ramp's end, and run back to the position read.
-            halted = drive.controlword & cia402.HALT and not _halted_for_a_mode(drive)
-            ON_TIMEOUT.set(STILL_BRAKING if halted else '')  # a mode change's note says it
+            ON_TIMEOUT.set(STILL_BRAKING if drive.controlword & cia402.HALT else '')
             await self._halt_for_mode(drive)
             ON_TIMEOUT.set('')
         hold = await self._hold(drive, mode)
