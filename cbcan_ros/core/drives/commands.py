@@ -246,9 +246,11 @@ class DriveCommands:
         attained = HOMING_ATTAINED.get() or (
             drive.updates > started and status.mode == cia402.HOMING
             and bool(status.statusword & cia402.MODE_BIT_12) and status.target_reached)
+        # No position named: the one known may be from before (its TPDO after the
+        # statusword's), and a read would hold up the answer of what replaced the homing.
         return (f'; node {drive.node_id} had shown homing attained before that (statusword '
-                f'bits 10 and 12): its position counts from the home position now '
-                f'({status.position} in drive units)' if attained else '')
+                f'bits 10 and 12): its position counts from the home position now'
+                if attained else '')
 
     def _is_current(self, drive) -> bool:
         """Return whether the running task is still ``drive``'s sequence (none replaced it)."""
