@@ -25,6 +25,7 @@ from cbcan_ros.core.drives import commands as drive_commands
 from cbcan_ros.core.nmt import OPERATIONAL
 from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
+from cbcan_ros.ros.service_qos import ACTION_SERVICES_QOS
 from cbcan_ros.simulation.durand.drive import DurandDrive
 from cbcan_ros.simulation.durand.drive_objects import (
     HOMING_METHOD,
@@ -721,6 +722,33 @@ def test_a_new_move_replaces_the_one_running(rig):
     assert not replaced.success and 'replaced' in replaced.message
     assert done.success, done.message
     assert axis.drive.position == -500  # below zero: decoded as the signed object it is
+
+
+# Once a defect (a red team's): the action's goal, result and cancel services kept ROS's
+# default 10 requests, so a burst of goals lost all but the first few (50 of 300 answered),
+# each a goal never answered; the gateway's own services keep 4096.
+def test_every_goal_of_a_burst_of_moves_is_answered_and_each_gets_its_result(rig):
+    axis = rig()
+    axis.enable(PP)
+    mover = ActionClient(axis.gateway.client_node, DriveMove, '/cbcan/move',
+                         **ACTION_SERVICES_QOS)  # the client keeps a burst's answers too
+    assert mover.wait_for_server(timeout_sec=10.0)
+    sent = [mover.send_goal_async(DriveMove.Goal(node_id=NODE, position=0.001 * n,
+                                                 velocity=5.0)) for n in range(300)]
+    wait_until(lambda: all(goal.done() for goal in sent), WAIT,
+               'an answer to every goal of the burst')
+    handles = [goal.result() for goal in sent]
+    assert all(handle.accepted for handle in handles)
+    results = [handle.get_result_async() for handle in handles]
+    wait_until(lambda: all(result.done() for result in results), WAIT,
+               'a result for every goal of the burst')
+    last = results[-1].result().result
+    assert last.success, last.message  # the newest ran to its end
+    ended = [result.result().result for result in results[:-1]]
+    # Each earlier one reached its position before the next came, or was replaced by it.
+    assert all(result.success or 'replaced' in result.message for result in ended), [
+        result.message for result in ended if not result.success
+        and 'replaced' not in result.message][:3]
 
 
 def test_nan_and_out_of_range_targets_are_refused_and_nothing_moves(rig):

@@ -23,7 +23,7 @@ from builtin_interfaces.msg import Time
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from ..core.coroutine_runner import CoroutineRunner
 from ..core.gateway import Gateway
@@ -61,20 +61,11 @@ from .program import ProgramAction
 from .publish_on_change import PublishOnChange
 from .raw_frames import RawFrameTopics
 from .rclpy_gaps import drain
+from .service_qos import SERVICE_QOS
 
 NODE_STATES_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
-# The default service QoS keeps 10 requests: a burst of calls (one per device, say) loses
-# the oldest before the executor takes them. A deep history keeps every request of a burst
-# (a full device queue is answered "busy"). Not keep-all: the answers share one history, and
-# a client killed mid-call stays matched until its DDS lease ends (about 20 s) without ever
-# acknowledging, so under keep-all its unacknowledged answers filled the history and every
-# later answer to everyone failed. Clients sending bursts need a history this deep too.
-SERVICE_DEPTH = 4096
-SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SERVICE_DEPTH,
-                         reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
 
 # The logger every module of the package logs under, shown through the node's ROS logger.
 PACKAGE = __package__.partition('.')[0]

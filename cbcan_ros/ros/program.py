@@ -24,6 +24,7 @@ from ..core.program.download import ProgramResult, Progress
 from ..core.program.service import ProgramRequest, ProgramService
 from ..core.sdo.request_queue import resolved
 from .goals import cancel_goal
+from .service_qos import ACTION_SERVICES_QOS
 
 LOGGER = logging.getLogger(__name__)
 
@@ -46,7 +47,8 @@ class ProgramAction:
                                     handle_accepted_callback=self._start,
                                     cancel_callback=lambda goal_handle: cancel_goal(
                                         self._cancels, goal_handle),
-                                    callback_group=ReentrantCallbackGroup())
+                                    callback_group=ReentrantCallbackGroup(),
+                                    **ACTION_SERVICES_QOS)
 
     def wait_until_answered(self, timeout: float) -> None:
         """Wait (shutdown) until every goal's result is decided and handed to ROS."""

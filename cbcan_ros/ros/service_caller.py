@@ -18,7 +18,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future as RosFuture
 
-from .interface import SERVICE_QOS
+from .service_qos import SERVICE_QOS
 
 # Seconds an answer may take beyond the SDO timeout of the request (a segmented transfer of
 # a large object takes many SDO round trips, each with its own timeout).
