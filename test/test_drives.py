@@ -94,8 +94,12 @@ class Rig:
                                  command=command, mode=mode, **fields)
 
     def enable(self, mode: int):
-        """Enable in ``mode``; it must succeed."""
-        response = self.command('enable', mode)
+        """Enable in ``mode``; it must succeed (within WAIT, not the 2 s default).
+
+        A mode change by SDO alone (the ``sdo_only`` layout) takes some twenty round trips:
+        a loaded test machine once took more than 2 s for one.
+        """
+        response = self.command('enable', mode, timeout=WAIT)
         assert response.success, response.message
         return response
 
