@@ -537,7 +537,7 @@ def test_a_halt_as_an_enable_replaces_a_set_mode_is_refused_as_one_during_the_en
         target=lambda: answers.update(set_mode=axis.command('set_mode', CSP)))
     changing.start()
     enabling = threading.Thread(
-        target=lambda: answers.update(enable=axis.command('enable', CSP)))
+        target=lambda: answers.update(enable=axis.command('enable', CSP, timeout=WAIT)))
     try:
         wait_until(lambda: axis.drive.velocity < 1000, WAIT, 'the axis braking for set_mode')
         commands._mapping_known = held

@@ -210,7 +210,7 @@ class DriveCommands:
             message += self._homed_meanwhile(drive)
             if halt_on_timeout:  # a motion that did not end in time does not run on
                 message = await self._halt_answered(drive, task, message)
-            held_note = self._held_for_the_mode(drive, held)
+            held_note = self._held_for_the_mode(drive, held)  # marks it needing an enable
             # An enable that ran out while the axis braked says how to go on already; the
             # mode change's note would tell its caller to call enable, as it just did.
             return DriveResult(False, message + ('' if said == STILL_BRAKING else held_note),
