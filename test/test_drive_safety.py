@@ -173,8 +173,9 @@ class Recorder(BusRecorder):
         except AssertionError:
             # Heartbeats left out: they would fill the frames shown.
             frames = heartbeats_left_out(self.messages(since))
-            raise AssertionError(f'{what} not seen; the last frames but heartbeats: '
-                                 f'{shown(frames, 120)}') from None
+            raise AssertionError(f'{what} not seen (the recording socket dropped '
+                                 f'{self.dropped()} datagrams); the last frames but '
+                                 f'heartbeats: {shown(frames, 120)}') from None
 
 
 class Targets:
