@@ -14,9 +14,10 @@ import math
 import struct
 import threading
 
-from action_msgs.msg import GoalStatus
+from action_msgs.msg import GoalStatus, GoalStatusArray
 import pytest
 from rclpy.action import ActionClient
+from rclpy.qos import qos_profile_action_status_default
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
@@ -25,7 +26,7 @@ from cbcan_ros.core.drives import commands as drive_commands
 from cbcan_ros.core.nmt import OPERATIONAL
 from cbcan_ros.msg import DriveState
 from cbcan_ros.ros.drives import STATE_QOS
-from cbcan_ros.ros.service_qos import ACTION_SERVICES_QOS
+from cbcan_ros.ros.service_qos import ACTION_RESULT_KEPT, ACTION_SERVICES_QOS
 from cbcan_ros.simulation.durand.drive import DurandDrive
 from cbcan_ros.simulation.durand.drive_objects import (
     HOMING_METHOD,
@@ -753,6 +754,43 @@ def test_every_goal_of_a_burst_of_moves_is_answered_and_each_gets_its_result(rig
     assert all(result.success or 'replaced' in result.message for result in ended), [
         result.message for result in ended if not result.success
         and 'replaced' not in result.message][:3]
+
+
+# Once a defect (a red team's): the move action kept every goal 900 s after it ended (rclpy's
+# default) and listed each in every status message it published, so with goals sent a few a
+# second every goal cost the executor more than the last (the node's CPU at 50 goals/s: 11 %
+# of a core at first, 35 % after 90 s) until calls waited behind it for seconds.
+def test_an_ended_move_is_kept_for_its_result_a_few_seconds_then_no_longer_listed(rig):
+    axis = rig()  # not enabled: every move ends at once, refused
+    statuses = []
+    axis.gateway.client_node.create_subscription(
+        GoalStatusArray, '/cbcan/move/_action/status', statuses.append,
+        qos_profile_action_status_default)
+    assert axis.mover.wait_for_server(timeout_sec=10.0)
+
+    def ended_move():
+        handle = wait_for_future(axis.mover.send_goal_async(
+            DriveMove.Goal(node_id=NODE, position=0.5, velocity=1.0)), WAIT)
+        result = wait_for_future(handle.get_result_async(), WAIT)
+        assert not result.result.success and 'enable' in result.result.message
+        return handle
+
+    first = ended_move()
+    # Asked for after the goal ended, its result is still there.
+    again = wait_for_future(first.get_result_async(), WAIT)
+    assert again.status == GoalStatus.STATUS_ABORTED and 'enable' in again.result.message
+
+    def forgotten():
+        asked = wait_for_future(first.get_result_async(), WAIT)
+        return asked.status == GoalStatus.STATUS_UNKNOWN
+    wait_until(forgotten, ACTION_RESULT_KEPT + WAIT, 'the ended move no longer kept')
+    second = ended_move()
+    wait_until(lambda: statuses and any(status.goal_info.goal_id.uuid.tobytes()
+                                        == second.goal_id.uuid.tobytes()
+                                        for status in statuses[-1].status_list),
+               WAIT, 'a status message listing the new move')
+    listed = [status.goal_info.goal_id.uuid.tobytes() for status in statuses[-1].status_list]
+    assert first.goal_id.uuid.tobytes() not in listed
 
 
 def test_nan_and_out_of_range_targets_are_refused_and_nothing_moves(rig):

@@ -43,7 +43,7 @@ from ..msg import DriveState
 from .drive_parameters import Joint
 from .goals import cancel_goal
 from .pdo import stamp_of
-from .service_qos import ACTION_SERVICES_QOS
+from .service_qos import ACTION_RESULT_KEPT, ACTION_SERVICES_QOS
 
 LOGGER = logging.getLogger(__name__)
 
@@ -121,6 +121,7 @@ class DriveTopics:
                                     cancel_callback=lambda goal_handle: cancel_goal(
                                         self._cancels, goal_handle),
                                     callback_group=ReentrantCallbackGroup(),
+                                    result_timeout=ACTION_RESULT_KEPT,
                                     **ACTION_SERVICES_QOS)
         # Changes are published by a thread of their own, not by the bus thread that sees
         # them: every change told, in order, then the newest if one was told late.

@@ -24,7 +24,7 @@ from ..core.program.download import ProgramResult, Progress
 from ..core.program.service import ProgramRequest, ProgramService
 from ..core.sdo.request_queue import resolved
 from .goals import cancel_goal
-from .service_qos import ACTION_SERVICES_QOS
+from .service_qos import ACTION_RESULT_KEPT, ACTION_SERVICES_QOS
 
 LOGGER = logging.getLogger(__name__)
 
@@ -48,6 +48,7 @@ class ProgramAction:
                                     cancel_callback=lambda goal_handle: cancel_goal(
                                         self._cancels, goal_handle),
                                     callback_group=ReentrantCallbackGroup(),
+                                    result_timeout=ACTION_RESULT_KEPT,
                                     **ACTION_SERVICES_QOS)
 
     def wait_until_answered(self, timeout: float) -> None:
