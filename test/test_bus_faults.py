@@ -299,24 +299,31 @@ def test_lss_calls_are_answered_at_once_when_the_bus_goes_down_and_work_after(st
 def test_a_bus_outage_is_neither_syncs_skipped_nor_a_period_error(start_faulty):
     # Once a defect: every SYNC the refusing adapter did not take, until the bus thread saw
     # the bus down, counted in /diagnostics as "SYNCs skipped", which says the host woke the
-    # SYNC thread late (12-29 for a 1 s outage at 10 ms on an idle machine).
+    # SYNC thread late (12-29 for a 1 s outage at 10 ms on an idle machine, every time).
+    # A busy machine's stalls skip SYNCs too, in bursts (one stall of 70 ms: 7 of them) that
+    # a window may or may not catch: so up to three outages, the defect failing each one.
     period, outage = 0.01, 1.0
     gateway, faults = start_faulty(sync__period=period)
     sync = gateway.node.gateway.sync
     wait_until(lambda: sync.status().measured_period is not None, RECOVERY, 'SYNCs measured')
-    # As long without an outage first: what this machine's load alone makes late.
-    before = sync.status().skipped
-    time.sleep(outage + 50 * period)
-    late = sync.status().skipped - before
-    before = sync.status().skipped
-    faults.fail_send('transmit failed')
-    time.sleep(outage)  # the adapter refuses every frame for that long
-    faults.clear()
-    wait_for_recovery(gateway)
-    wait_until(lambda: sync.status().running, RECOVERY, 'SYNC produced again')
-    time.sleep(50 * period)
-    after = sync.status()
-    # A busy machine may really wake the thread late a few times more in these 1.5 s.
+    tries = []
+    for _ in range(3):
+        # As long without an outage first: what this machine's load alone makes late.
+        before = sync.status().skipped
+        time.sleep(outage + 50 * period)
+        late = sync.status().skipped - before
+        before = sync.status().skipped
+        faults.fail_send('transmit failed')
+        time.sleep(outage)  # the adapter refuses every frame for that long
+        faults.clear()
+        wait_for_recovery(gateway)
+        wait_until(lambda: sync.status().running, RECOVERY, 'SYNC produced again')
+        time.sleep(50 * period)
+        after = sync.status()
+        tries.append((after.skipped - before, late))
+        # A busy machine may really wake the thread late a few times more in these 1.5 s.
+        if after.skipped - before <= late + 5:
+            break
     assert after.skipped - before <= late + 5, (
-        f'{after.skipped - before} SYNCs counted as skipped ({late} without the outage)')
+        f'SYNCs counted as skipped with the outage (and without it), each try: {tries}')
     assert after.measured_jitter < outage / 2, f'the outage shown as a period error: {after}'

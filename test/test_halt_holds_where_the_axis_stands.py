@@ -135,6 +135,10 @@ def test_torque_targets_waiting_for_the_sdo_channel_do_not_follow_a_halt(rig):  
     axis.enable(CST)
     pdo = axis.gateway.node.gateway.pdo
     wait_until(lambda: pdo.mapping_reads(NODE), WAIT, 'the PDO mapping read: the halt by RPDO')
+    # Its PDOs are used once its heartbeat says OPERATIONAL; before, the halt goes by SDO
+    # (seen once on a busy machine: no halt in RPDO 1).
+    wait_until(lambda: axis.gateway.node.gateway.monitor.operational(NODE), WAIT,
+               'the drive heard OPERATIONAL')
     send = axis.drive._network.send
 
     def slow(cob_id: int, data: bytes) -> None:  # the drive answers torque writes late
@@ -153,8 +157,11 @@ def test_torque_targets_waiting_for_the_sdo_channel_do_not_follow_a_halt(rig):  
     finally:
         listener.shutdown()
     assert answer.success, answer.message
-    halt = next(n for n, m in enumerate(seen)
-                if m.arbitration_id == 0x200 + NODE and m.data[1] & 0x01)
+    halts = [n for n, m in enumerate(seen)
+             if m.arbitration_id == 0x200 + NODE and m.data[1] & 0x01]
+    shown = [f'{m.arbitration_id:X}#{m.data.hex()}' for m in seen]
+    assert halts, f'no halt in RPDO 1 among the frames after it: {shown}'
+    halt = halts[0]
     torques = [struct.unpack_from('<h', m.data, 4)[0] for m in seen[halt:]
                if m.arbitration_id == 0x600 + NODE and bytes(m.data[1:4]) == b'\x71\x60\x00'
                and m.data[0] >> 5 == 1]
