@@ -280,6 +280,25 @@ def test_cyclic_position_follows_each_target(axis):
     assert axis.get('statusword') & (BIT_12 | REACHED) == BIT_12 | REACHED
 
 
+def test_a_cyclic_position_step_is_taken_over_one_control_cycle_at_least(axis):
+    # Once a defect (seen only in a full suite on a loaded machine): the tick came right
+    # after an SDO frame's step, the step of 250 counts over microseconds read as millions
+    # of counts/s, and a halt then braked from that speed for minutes. A drive takes a
+    # set-point over one control cycle (its tick) at the least.
+    axis.enable(CSP)
+    drive, scheduler = axis.drive, shared_scheduler()
+    start = axis.get('position_actual')
+    with scheduler.lock:  # the tick held, as a loaded machine holds it
+        scheduler.cancel(drive._tick_timer)
+        drive._tick_timer = scheduler.add(3600.0, drive._on_tick)
+        drive._step()  # a step just now: the write's frame within the tick takes none
+    axis.set('target_position', start + 250)
+    with scheduler.lock:
+        drive._step()  # the tick at last, a moment after
+    assert drive.position == start + 250
+    assert 0 < drive.velocity <= 250 / drive.tick
+
+
 def test_cyclic_torque_drives_the_load(axis):
     axis.enable(CST)
     axis.set('target_torque', 50)

@@ -396,7 +396,10 @@ class DurandDrive(DurandDevice):
             self._ramp(self._torque * VELOCITY_PER_TORQUE, 0, elapsed)
         elif mode == cia402.CYCLIC_POSITION:
             target = float(self._read(TARGET_POSITION))
-            self._velocity = (target - self._position) / elapsed
+            # Over one control cycle at the least: a tick right after an SDO frame's step
+            # (a loaded machine) took a step of 250 counts as millions of counts/s, and a
+            # halt then braked from that speed for minutes.
+            self._velocity = (target - self._position) / max(elapsed, self.tick)
             self._position = target
         elif mode == cia402.PROFILE_POSITION and self._pp_target is not None:
             if self._travel(self._pp_target, elapsed):
