@@ -389,6 +389,21 @@ def test_an_enable_that_times_out_while_the_axis_brakes_says_so_and_releases_not
     axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis held at a stand')
 
 
+# Once a wrong hint (seen in a CI run): an enable in another mode whose time ran out while
+# the axis braked for the mode change told its caller to call enable, as it just had.
+def test_an_enable_in_another_mode_that_times_out_while_the_axis_brakes_says_so(rig):
+    axis = moving_in_csv(rig, 'combined', LONG_RAMP)
+    enabled = axis.command('enable', CSP, timeout=0.3)
+    assert not enabled.success
+    assert 'still braking' in enabled.message, enabled.message
+    assert 'call enable (in the mode wanted)' not in enabled.message, enabled.message
+    assert enabled.mode == CSV and enabled.state == 'OPERATION_ENABLED'
+    axis.drive_reaches(lambda drive: drive.velocity == 0, 'the axis braked to a stand')
+    assert axis.drive._read(MODE) == CSV
+    again = axis.command('enable', CSP)
+    assert again.success, again.message
+
+
 # Once a wrong hint (a red team's): after a set_mode timed out with the axis braking, an
 # enable in the mode wanted that timed out too told its caller to call enable in the mode
 # wanted, which it had just done, instead of that the axis was still braking.

@@ -62,7 +62,8 @@ ON_TIMEOUT: contextvars.ContextVar = contextvars.ContextVar('on_timeout', defaul
 HOMING_STARTED: contextvars.ContextVar = contextvars.ContextVar('homing_started', default=None)
 HOMING_ATTAINED: contextvars.ContextVar = contextvars.ContextVar('homing_attained',
                                                                  default=False)
-# What an enable's answer adds when its time ran out while the halted axis braked.
+# What an enable's answer adds when its time ran out while the halted axis braked (halted
+# before the enable, or by it for the mode change).
 STILL_BRAKING = ('; the axis was still braking from its halt and stays halted: call enable '
                  'again once it stands, or give the enable a timeout longer than its ramp')
 # What a halt that timed out adds: the drive holds the halt, whether or not it shows a stand.
@@ -399,7 +400,7 @@ class DriveCommands:
             await self._until(drive, lambda status: status.mode == mode)
         return hold if halted_here else None
 
-    async def _halt_for_mode(self, drive) -> bool:
+    async def _halt_for_mode(self, drive, braking: str = '') -> bool:
         """Bring an enabled axis to a stand before its mode changes; return whether it halted it.
 
         The new mode's holding target is read once the axis stands: read while it moves, it
@@ -408,9 +409,10 @@ class DriveCommands:
         velocity threshold (0x606F) or its position confirms it (``_standing_confirmed``);
         another is halted (a halt of a mode change before, replaced or timed out, counts as
         this one's) and waited for within the command's time (``_until_standing``): a long
-        braking ramp is never cut short. One halted by a halt, a cancelled move or the
-        command timeout stays halted. A drive that leaves OPERATION_ENABLED meanwhile ends the
-        command: nothing more is sent to it.
+        braking ramp is never cut short; ``braking``, when given, is what the answer adds if
+        that time runs out once the axis is halted (``ON_TIMEOUT``). One halted by a halt, a
+        cancelled move or the command timeout stays halted. A drive that leaves
+        OPERATION_ENABLED meanwhile ends the command: nothing more is sent to it.
         """
         status = self._service.status(drive.node_id)
         if status.state != cia402.OPERATION_ENABLED:
@@ -428,6 +430,8 @@ class DriveCommands:
             if stopping:  # a write of its own, as ``_halt`` sends it
                 await self._send(drive, stopping)
             ours = True
+        if braking:
+            ON_TIMEOUT.set(braking)
         # Read after the halt went out: a drive slow to answer it must not delay the halt.
         threshold = await velocity_threshold(drive, SEND_TIMEOUT)
         await self._until_standing(drive, status.mode, threshold, halting)
@@ -599,8 +603,10 @@ class DriveCommands:
             # a halt, a cancelled move, the command timeout) is waited for as a mode change
             # waits, within the command's time. Released earlier, a drive that ramps its halt
             # in CSP would stop short of the ramp's end, and run back to the position read.
+            # The answer of one that runs out meanwhile says the axis still brakes, not to
+            # call enable (as its caller just did): once halted, whoever halted it.
             ON_TIMEOUT.set(STILL_BRAKING if drive.controlword & cia402.HALT else '')
-            await self._halt_for_mode(drive)
+            await self._halt_for_mode(drive, braking=STILL_BRAKING)
             ON_TIMEOUT.set('')
         hold = await self._hold(drive, mode)
         held = hold.get(cia402.TARGET_POSITION, 0)
