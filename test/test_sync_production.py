@@ -51,13 +51,26 @@ class Rig:
             self.wait_written()
 
     def wait_written(self) -> None:
-        """Return once a synchronous RPDO was written (the device's mapping read)."""
+        """Return once a synchronous RPDO was written (the device's mapping read).
+
+        The client waits for the service every time, as a caller of a managed node must:
+        configured again, the node serves a new ``pdo_write``, and a request sent before the
+        client has found it is lost by DDS (nothing answers it).
+        """
         if self.pdo_write is None:
             self.pdo_write = service_client(self.client_node, PdoWrite,
                                             f'{self.name}/pdo_write', self.node)
+        elif not self.pdo_write.wait_for_service(timeout_sec=START_TIMEOUT):
+            raise AssertionError(f'pdo_write did not appear again within {START_TIMEOUT} s:\n'
+                                 f'{self.node.output()}')
 
         def written():
-            answer = call(self.pdo_write, self.request(1.0), 'pdo_write', self.node, ANSWER)
+            began = time.monotonic()
+            try:
+                answer = call(self.pdo_write, self.request(1.0), 'pdo_write', self.node, ANSWER)
+            except AssertionError as error:  # whether the SYNC it waits for came
+                raise AssertionError(f'{len(self.syncs(began))} SYNCs on the bus since the '
+                                     f'call; {error}') from None
             return answer.success
         wait_until(written, START_TIMEOUT, 'a first synchronous RPDO written (mapping read)')
 
@@ -158,6 +171,8 @@ def test_cleanup_ends_sync_and_configure_again_starts_one_producer(start_node, c
             transition(Transition.TRANSITION_DEACTIVATE)
             cleaned = transition(Transition.TRANSITION_CLEANUP)
             answered = time.time()  # the socket stamps frames on the wall clock
+            wait_until(lambda: not rig.pdo_write.service_is_ready(), ANSWER,
+                       'pdo_write taken away by cleanup')
             wait_until(lambda c=cleaned: time.monotonic() > c + 10 * period, ANSWER, 'a while')
             after = [stamp for stamp in rig.sync_arrivals(cleaned - 5.0) if stamp > answered]
             assert not after, f'{len(after)} SYNCs after cleanup was answered'
