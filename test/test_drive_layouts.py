@@ -220,10 +220,10 @@ def test_a_stream_of_pp_targets_whose_last_set_point_is_missed_shows_it_in_diagn
         item = drive_item()
         if item is None or item.level != WARN:
             return None
-        shown = {pair.key: pair.value for pair in item.values}.get('Last PP set-point streamed')
-        return item if f'target {start + 3000}' in (shown or '') else None
-    missed = wait_until(missed_last, WAIT, 'the missed last set-point on /diagnostics')
-    shown = {pair.key: pair.value for pair in missed.values}['Last PP set-point streamed']
+        shown = {pair.key: pair.value for pair in item.values}.get(
+            'Last PP set-point streamed', '')
+        return (item, shown) if f'target {start + 3000}' in shown else None
+    missed, shown = wait_until(missed_last, WAIT, 'the missed last set-point on /diagnostics')
     assert f'at position {start}, not at the target {start + 3000}' in shown, shown
     assert 'the last PP set-point streamed was missed' in missed.message
     axis.drive._take_set_point = take  # the next stream arrives: shown again as OK
