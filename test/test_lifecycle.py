@@ -15,11 +15,14 @@ from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.msg import Parameter as ParameterMessage
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
+from rclpy.action import ActionClient
 from test_shutdown import answered_within
 
+from cbcan_ros.action import DriveMove
 from cbcan_ros.msg import LssIdentity, NodeStates, SdoAccess
 from cbcan_ros.ros.interface import NODE_STATES_QOS
 from cbcan_ros.ros.node import SHUTDOWN_LIMIT
+from cbcan_ros.ros.service_qos import ACTION_SERVICES_QOS
 from cbcan_ros.srv import (
     LssConfigure,
     LssInquire,
@@ -382,3 +385,42 @@ def test_deactivate_cleanup_and_signals_in_every_state(start_node, client_node):
     assert unconfigured.node.wait(STOP_TIMEOUT) == 0
     assert time.monotonic() - signalled < SHUTDOWN_LIMIT
     assert 'Traceback' not in unconfigured.node.output()
+
+
+# Once a defect (a red team's): cleanup destroyed the action servers while rclpy's
+# EventsExecutor spun, and a move goal or result request that came within milliseconds of
+# its answer killed the node (SIGSEGV, 7 of 7 tries). The actions now stay for the node's
+# life: such a goal is answered that the gateway is not configured, and configured again
+# the gateway serves them as before.
+def test_a_goal_right_after_cleanup_is_answered_and_the_node_lives_on(start_node,
+                                                                      client_node):
+    managed = Managed(start_node, client_node)
+    mover = ActionClient(client_node, DriveMove, f'{managed.name}/move', **ACTION_SERVICES_QOS)
+
+    def move(what: str):
+        """Send a move goal of node 2 (not a drive); return its result, once accepted."""
+        goal = wait_for_future(mover.send_goal_async(DriveMove.Goal(node_id=DEVICE)), ANSWER)
+        assert goal.accepted, what
+        return wait_for_future(goal.get_result_async(), ANSWER).result
+
+    for _ in range(2):
+        assert managed.transition(Transition.TRANSITION_CONFIGURE)
+        assert managed.transition(Transition.TRANSITION_ACTIVATE)
+        assert mover.wait_for_server(timeout_sec=ANSWER), managed.node.output()
+        served = move('a goal of the configured gateway')
+        assert 'is not a drive' in served.message, served.message
+        assert managed.transition(Transition.TRANSITION_DEACTIVATE)
+        assert managed.transition(Transition.TRANSITION_CLEANUP)
+        late = [mover.send_goal_async(DriveMove.Goal(node_id=DEVICE)) for _ in range(5)]
+        for sent in late:
+            try:
+                goal = wait_for_future(sent, ANSWER)
+                result = wait_for_future(goal.get_result_async(), ANSWER).result
+            except AssertionError as error:
+                raise AssertionError(f"{error} (the node's exit status "
+                                     f'{managed.node.process.poll()}):\n'
+                                     f'{managed.node.output()}') from None
+            assert not result.success and 'not configured' in result.message, result.message
+        assert managed.node.process.poll() is None, managed.node.output()
+    managed.node.process.send_signal(signal.SIGINT)
+    assert managed.node.wait(STOP_TIMEOUT) == 0, managed.node.output()

@@ -24,8 +24,6 @@ import threading
 import time
 from typing import Callable, Dict, List, Optional, Tuple
 
-from rclpy.action import ActionServer, GoalResponse
-from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future as RclpyFuture
@@ -41,9 +39,8 @@ from ..core.text import HEARTBEAT_SILENT, SHUTTING_DOWN
 from ..core.values import int_given_as_float
 from ..msg import DriveState
 from .drive_parameters import Joint
-from .goals import cancel_goal
+from .goals import cancel_goal, GoalCallbacks, KeptActionServer
 from .pdo import stamp_of
-from .service_qos import ACTION_RESULT_KEPT, ACTION_SERVICES_QOS
 
 LOGGER = logging.getLogger(__name__)
 
@@ -115,14 +112,9 @@ class DriveTopics:
         if joints:
             self._subscriptions.append(node.create_subscription(
                 JointState, '~/joint_commands', self._on_joint_commands, TARGET_QOS))
-        self._action = ActionServer(node, DriveMove, '~/move',
-                                    execute_callback=self._execute_move,
-                                    goal_callback=lambda goal: GoalResponse.ACCEPT,
-                                    cancel_callback=lambda goal_handle: cancel_goal(
-                                        self._cancels, goal_handle),
-                                    callback_group=ReentrantCallbackGroup(),
-                                    result_timeout=ACTION_RESULT_KEPT,
-                                    **ACTION_SERVICES_QOS)
+        self._action = KeptActionServer.of(node, DriveMove, '~/move')
+        self._action.attach(GoalCallbacks(
+            self._execute_move, lambda goal_handle: cancel_goal(self._cancels, goal_handle)))
         # Changes are published by a thread of their own, not by the bus thread that sees
         # them: every change told, in order, then the newest if one was told late.
         self._changed: List[DriveStatus] = []
@@ -141,7 +133,7 @@ class DriveTopics:
             self._closing = True
             self._wake.notify()
         self._thread.join(timeout=2.0)
-        self._action.destroy()
+        self._action.detach()
         for publisher in [*self._states.values(), self._joint_states]:
             if publisher is not None:
                 self._node.destroy_publisher(publisher)

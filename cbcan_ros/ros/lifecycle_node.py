@@ -7,7 +7,8 @@ driven by the standard lifecycle transitions (``ros2 lifecycle set /can0/cbcan c
 - activate: serve the services and publish the topics;
 - deactivate: answer every new call "inactive" (calls under way finish, but transfers with a
   drive that gets its stop), stop the drives and stop publishing;
-- cleanup, shutdown: answer waiting calls, close the bus, take the services away.
+- cleanup, shutdown: answer waiting calls, close the bus, take the services away; the
+  actions stay, answering every goal that the gateway is not configured (``goals``).
 
 A wrong parameter fails configure with the reason in the log; fix it (``ros2 param set``)
 and configure again.
@@ -17,6 +18,7 @@ from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 
 from .answer_retry import retry_the_node_services
 from .config import NodeParameters
+from .goals import KeptActionServer
 from .interface import GatewayInterface
 from .node import run
 from .rclpy_gaps import refuse_unavailable_transitions
@@ -81,6 +83,7 @@ class CbcanLifecycleNode(LifecycleNode):
     def destroy_node(self) -> None:
         """Close the bus if it is open, then destroy the node."""
         self._close()
+        KeptActionServer.destroy_all(self)
         self._answers.close()
         super().destroy_node()
 

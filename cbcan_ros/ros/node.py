@@ -25,6 +25,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from .answer_retry import retry_the_node_services
 from .config import NodeParameters
+from .goals import KeptActionServer
 from .interface import ANSWER_GRACE, GatewayInterface
 
 # The longest an idle executor sleeps before it looks whether shutdown began (it is woken
@@ -82,6 +83,7 @@ class CbcanNode(Node):
             return
         self._destroyed = True
         self.interface.destroy()
+        KeptActionServer.destroy_all(self)
         self._answers.close()
         super().destroy_node()
 

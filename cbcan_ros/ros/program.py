@@ -15,16 +15,13 @@ import logging
 import threading
 from typing import Callable, Dict, Optional
 
-from rclpy.action import ActionServer, GoalResponse
-from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
 from ..action import ProgramDownload
 from ..core.program.download import ProgramResult, Progress
 from ..core.program.service import ProgramRequest, ProgramService
 from ..core.sdo.request_queue import resolved
-from .goals import cancel_goal
-from .service_qos import ACTION_RESULT_KEPT, ACTION_SERVICES_QOS
+from .goals import cancel_goal, GoalCallbacks, KeptActionServer
 
 LOGGER = logging.getLogger(__name__)
 
@@ -41,15 +38,10 @@ class ProgramAction:
         self._running = 0
         self.answered = 0  # goals answered (results handed to ROS) since the start
         self._idle = threading.Condition()
-        self._server = ActionServer(node, ProgramDownload, '~/program_download',
-                                    execute_callback=self._answer,
-                                    goal_callback=lambda goal: GoalResponse.ACCEPT,
-                                    handle_accepted_callback=self._start,
-                                    cancel_callback=lambda goal_handle: cancel_goal(
-                                        self._cancels, goal_handle),
-                                    callback_group=ReentrantCallbackGroup(),
-                                    result_timeout=ACTION_RESULT_KEPT,
-                                    **ACTION_SERVICES_QOS)
+        self._server = KeptActionServer.of(node, ProgramDownload, '~/program_download')
+        self._server.attach(GoalCallbacks(
+            self._answer, lambda goal_handle: cancel_goal(self._cancels, goal_handle),
+            accepted=self._start))
 
     def wait_until_answered(self, timeout: float) -> None:
         """Wait (shutdown) until every goal's result is decided and handed to ROS."""
@@ -57,8 +49,8 @@ class ProgramAction:
             self._idle.wait_for(lambda: not self._running, timeout)
 
     def destroy(self) -> None:
-        """Take the action server away."""
-        self._server.destroy()
+        """Answer the goals that come from now on as no gateway's (the server stays)."""
+        self._server.detach()
 
     def _start(self, goal_handle) -> None:
         """Start the download of an accepted goal; the goal is executed once it has ended."""
