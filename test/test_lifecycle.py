@@ -5,6 +5,7 @@ The node runs as a separate process with a simulated device; this process plays
 """
 
 import signal
+import threading
 import time
 import uuid
 
@@ -15,11 +16,14 @@ from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.msg import Parameter as ParameterMessage
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
+import rclpy
 from rclpy.action import ActionClient
+from rclpy.duration import Duration
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from test_shutdown import answered_within
 
 from cbcan_ros.action import DriveMove
-from cbcan_ros.msg import LssIdentity, NodeStates, SdoAccess
+from cbcan_ros.msg import CanFrame, LssIdentity, NodeStates, Pdo, SdoAccess
 from cbcan_ros.ros.interface import NODE_STATES_QOS
 from cbcan_ros.ros.node import SHUTDOWN_LIMIT
 from cbcan_ros.ros.service_qos import ACTION_SERVICES_QOS
@@ -424,3 +428,112 @@ def test_a_goal_right_after_cleanup_is_answered_and_the_node_lives_on(start_node
         assert managed.node.process.poll() is None, managed.node.output()
     managed.node.process.send_signal(signal.SIGINT)
     assert managed.node.wait(STOP_TIMEOUT) == 0, managed.node.output()
+
+
+def _ignore(_message) -> None:
+    pass
+
+
+class EndpointChurn:
+    """Subscriptions and publishers the gateway's cannot match, made and destroyed meanwhile.
+
+    Each one discovered makes the gateway's endpoint of its topic raise an event. On a node
+    of their own that no executor spins.
+    """
+
+    def __init__(self, name: str):
+        self._node = rclpy.create_node(f'churn_{uuid.uuid4().hex[:8]}')
+        demanding = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                               durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                               deadline=Duration(seconds=0.01))
+        lax = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+        node = self._node
+        self._make = [
+            lambda: node.create_subscription(NodeStates, f'{name}/node_states', _ignore,
+                                             demanding),
+            lambda: node.create_subscription(Pdo, f'{name}/node_{DEVICE}/rpdo', _ignore,
+                                             demanding),
+            lambda: node.create_subscription(CanFrame, f'{name}/from_can_bus', _ignore,
+                                             demanding),
+            lambda: node.create_publisher(Pdo, f'{name}/node_{DEVICE}/tpdo', lax),
+            lambda: node.create_publisher(CanFrame, f'{name}/to_can_bus', lax)]
+        self._running = True
+        self._thread = threading.Thread(target=self._churn, daemon=True)
+        self._thread.start()
+
+    def _churn(self) -> None:
+        while self._running:
+            made = [make() for make in self._make]
+            time.sleep(0.005)
+            for entity in made:
+                entity.destroy()
+
+    def stop(self) -> None:
+        """Stop making endpoints; destroy the node."""
+        self._running = False
+        self._thread.join()
+        self._node.destroy_node()
+
+
+# Once a defect (a red team's): every publisher and subscription had rclpy's default event
+# handlers (the warnings of an endpoint with incompatible QoS or type). Cleanup and shutdown
+# destroyed them while the EventsExecutor spun, and an event that came in between, with
+# such endpoints coming and going, killed the node (SIGSEGV, 8 of 8 tries).
+def test_incompatible_endpoints_coming_and_going_do_not_end_the_node_at_cleanup(
+        start_node, client_node):
+    managed = Managed(start_node, client_node, '-p', f'pdo.nodes:=[{DEVICE}]',
+                      '-p', "raw.filters:=['0:0']", '-p', "raw.send_allow:=['123:7FF']")
+    for last in (Transition.TRANSITION_CLEANUP, Transition.TRANSITION_INACTIVE_SHUTDOWN):
+        assert managed.transition(Transition.TRANSITION_CONFIGURE)
+        assert managed.transition(Transition.TRANSITION_ACTIVATE)
+        churn = EndpointChurn(managed.name)
+        try:
+            assert managed.transition(Transition.TRANSITION_DEACTIVATE)
+            assert managed.transition(last)
+            ended = time.monotonic()
+            wait_until(lambda e=ended: time.monotonic() > e + 1.0, ANSWER, 'a while after')
+        finally:
+            churn.stop()
+        assert managed.node.process.poll() is None, managed.node.output()
+    assert managed.state() == 'finalized'
+    managed.node.process.send_signal(signal.SIGINT)
+    assert managed.node.wait(STOP_TIMEOUT) == 0, managed.node.output()
+
+
+# Once a flood (a red team's): requests the executor had queued for services that cleanup
+# had just destroyed each failed as it took them, and each was logged "a callback failed"
+# (5,025 lines at one cleanup); a hundred in a row would have ended the node. They are
+# counted now, and logged at most every GONE_LOG_PERIOD.
+@HEAVY
+def test_calls_hammering_a_cleanup_leave_a_line_in_the_log_not_one_per_call(start_node,
+                                                                           client_node):
+    managed = Managed(start_node, client_node)
+    assert managed.transition(Transition.TRANSITION_CONFIGURE)
+    assert managed.transition(Transition.TRANSITION_ACTIVATE)
+    clients = [(managed.client(SdoRead, 'sdo_read'), SdoRead.Request(node_id=DEVICE,
+                                                                     index=0x1000)),
+               (managed.client(NmtState, 'nmt_state'), NmtState.Request(node_id=DEVICE))]
+    hammering = threading.Event()
+    hammering.set()
+
+    def hammer(client, request):
+        while hammering.is_set():
+            client.call_async(request)
+            time.sleep(0.001)
+    threads = [threading.Thread(target=hammer, args=pair, daemon=True)
+               for pair in clients * 2]
+    for thread in threads:
+        thread.start()
+    try:
+        assert managed.transition(Transition.TRANSITION_DEACTIVATE)
+        assert managed.transition(Transition.TRANSITION_CLEANUP)
+        ended = time.monotonic()
+        wait_until(lambda: time.monotonic() > ended + 1.0, ANSWER, 'a while after cleanup')
+    finally:
+        hammering.clear()
+        for thread in threads:
+            thread.join()
+    output = managed.node.output()
+    assert managed.node.process.poll() is None, output
+    assert 'a callback failed' not in output, output[-3000:]
+    assert output.count('just taken away') <= 2, output[-3000:]

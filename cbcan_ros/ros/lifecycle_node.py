@@ -21,7 +21,7 @@ from .config import NodeParameters
 from .goals import KeptActionServer
 from .interface import GatewayInterface
 from .node import run
-from .rclpy_gaps import refuse_unavailable_transitions
+from .rclpy_gaps import refuse_unavailable_transitions, without_default_event_handlers
 
 
 class CbcanLifecycleNode(LifecycleNode):
@@ -34,6 +34,8 @@ class CbcanLifecycleNode(LifecycleNode):
         # rclpy's change_state raises for a transition the current state does not have
         # (configure twice), which would end the node; rclcpp answers success false.
         refuse_unavailable_transitions(self)
+        # Its transitions destroy publishers and subscriptions while the executor spins.
+        without_default_event_handlers(self)
         self._answers = retry_the_node_services(self)
 
     @property

@@ -15,9 +15,11 @@ import select
 import signal
 import sys
 import threading
+import time
 from typing import Callable, List, NoReturn
 
 import rclpy
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
@@ -46,6 +48,11 @@ SHUTDOWN_OVERRUN = 1  # the exit status when shutdown did not finish within SHUT
 # Failures of the executor in a row after which the node gives up (exit status 1) rather
 # than spin in a loop of errors.
 EXECUTOR_FAILURES = 100
+
+# Requests and events the executor had queued for services and topics that a managed node's
+# transition has just destroyed fail as it takes them (InvalidHandle): thousands under a
+# burst of calls at cleanup. Counted, not failures, and logged at most once in this long.
+GONE_LOG_PERIOD = 10.0
 
 
 def make_executor():
@@ -132,7 +139,7 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
     ended = threading.Event()  # the executor's thread ended (the main thread only reads it)
 
     def spin() -> None:
-        failures = 0
+        failures, gone, gone_logged = 0, 0, None
         try:
             while spinning.is_set():
                 try:
@@ -140,6 +147,16 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
                     failures = 0
                 except ExternalShutdownException:
                     return
+                except InvalidHandle:  # not a failure: see GONE_LOG_PERIOD
+                    gone += 1
+                    now = time.monotonic()
+                    if gone_logged is None or now - gone_logged >= GONE_LOG_PERIOD:
+                        said = f'{gone} requests or events' if gone > 1 else 'a request or event'
+                        node.get_logger().warning(
+                            f'{said} for services or topics just taken away (cleanup, shutdown) '
+                            f'dropped: nothing is left to serve them (more are counted and '
+                            f'logged at most every {GONE_LOG_PERIOD:g} s)')
+                        gone, gone_logged = 0, now
                 except Exception as error:  # noqa: BLE001 - a bad callback must not end it
                     failures += 1
                     if failures == 1:

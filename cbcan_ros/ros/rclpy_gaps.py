@@ -22,6 +22,11 @@ in docs/library_gaps.md:
    first, then forgets the goal's feedback callback: feedback the server sent before its
    result, still waiting when the result is taken (a busy client), is lost.
    :class:`FeedbackFirstActionClient` hands the goal all of it before its result.
+8. Every publisher and subscription gets event handlers by default (the warnings of an
+   endpoint with incompatible QoS or type), which are waitables: destroyed while
+   ``EventsExecutor`` spins (a managed node's cleanup or shutdown), an event that came in
+   between ended the process with a segmentation fault.
+   :func:`without_default_event_handlers` makes a node's without them.
 """
 
 import re
@@ -30,6 +35,7 @@ from typing import Callable, Dict
 import warnings
 
 from rclpy.action import ActionClient
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidHandle
 from rclpy.lifecycle import LifecycleNode
 from rclpy.node import Node
@@ -149,6 +155,25 @@ def refuse_unavailable_transitions(node: LifecycleNode) -> None:
         return change_state(request, response)
 
     node._service_change_state.callback = checked
+
+
+def without_default_event_handlers(node: Node) -> None:
+    """Create ``node``'s publishers and subscriptions from now on without event handlers.
+
+    Those given ``event_callbacks`` of their own keep them.
+    """
+    create_publisher, create_subscription = node.create_publisher, node.create_subscription
+
+    def publisher(*args, event_callbacks=None, **kwargs):
+        return create_publisher(*args, event_callbacks=event_callbacks or
+                                PublisherEventCallbacks(use_default_callbacks=False), **kwargs)
+
+    def subscription(*args, event_callbacks=None, **kwargs):
+        return create_subscription(*args, event_callbacks=event_callbacks or
+                                   SubscriptionEventCallbacks(use_default_callbacks=False),
+                                   **kwargs)
+
+    node.create_publisher, node.create_subscription = publisher, subscription
 
 
 def parameter_overrides(node: Node) -> Dict[str, Parameter]:
