@@ -39,7 +39,7 @@ from ..core.text import HEARTBEAT_SILENT, SHUTTING_DOWN
 from ..core.values import int_given_as_float
 from ..msg import DriveState
 from .drive_parameters import Joint
-from .goals import cancel_goal, GoalCallbacks, KeptActionServer
+from .goals import GoalCallbacks, KeptActionServer
 from .pdo import stamp_of
 
 LOGGER = logging.getLogger(__name__)
@@ -113,8 +113,7 @@ class DriveTopics:
             self._subscriptions.append(node.create_subscription(
                 JointState, '~/joint_commands', self._on_joint_commands, TARGET_QOS))
         self._action = KeptActionServer.of(node, DriveMove, '~/move')
-        self._action.attach(GoalCallbacks(
-            self._execute_move, lambda goal_handle: cancel_goal(self._cancels, goal_handle)))
+        self._action.attach(GoalCallbacks(self._execute_move, self._cancels))
         # Changes are published by a thread of their own, not by the bus thread that sees
         # them: every change told, in order, then the newest if one was told late.
         self._changed: List[DriveStatus] = []

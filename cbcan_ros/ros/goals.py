@@ -9,7 +9,6 @@ them when it goes; a goal that comes while none is attached is answered at once.
 
 from dataclasses import dataclass
 from typing import Callable, Dict, Optional
-import weakref
 
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -23,21 +22,16 @@ UNSERVED = ('the gateway is not configured (a managed node after cleanup: config
             'activate it first); nothing was sent')
 
 
-def cancel_goal(cancels: Dict[bytes, Callable[[], None]], goal_handle) -> CancelResponse:
-    """Run the cancel kept for ``goal_handle``'s goal id; reject a goal that has none (ended)."""
-    cancel = cancels.get(bytes(goal_handle.goal_id.uuid))
-    if cancel is None:
-        return CancelResponse.REJECT
-    cancel()
-    return CancelResponse.ACCEPT
-
-
 @dataclass(frozen=True)
 class GoalCallbacks:
-    """A gateway's callbacks of one action: rclpy's execute, cancel and accepted callbacks."""
+    """A gateway's side of one action: rclpy's execute and accepted callbacks, its cancels.
+
+    ``cancels``: the cancel of each goal under way, by goal id (a goal without one has ended,
+    and a cancel of it is rejected).
+    """
 
     execute: Callable
-    cancel: Callable
+    cancels: Dict[bytes, Callable[[], None]]
     accepted: Optional[Callable] = None  # None: the goal is executed at once
 
 
@@ -48,8 +42,7 @@ class KeptActionServer:
     so a goal under way when they are detached is still ended by its own gateway.
     """
 
-    _kept: 'weakref.WeakKeyDictionary[Node, Dict[str, KeptActionServer]]' = \
-        weakref.WeakKeyDictionary()
+    _kept: Dict[Node, Dict[str, 'KeptActionServer']] = {}  # until destroy_all
 
     @classmethod
     def of(cls, node: Node, action_type, name: str) -> 'KeptActionServer':
@@ -103,5 +96,10 @@ class KeptActionServer:
             self._of_goal.pop(key, None)
 
     def _cancel(self, goal_handle) -> CancelResponse:
-        callbacks = self._of_goal.get(bytes(goal_handle.goal_id.uuid))
-        return CancelResponse.REJECT if callbacks is None else callbacks.cancel(goal_handle)
+        key = bytes(goal_handle.goal_id.uuid)
+        callbacks = self._of_goal.get(key)
+        cancel = callbacks.cancels.get(key) if callbacks is not None else None
+        if cancel is None:
+            return CancelResponse.REJECT
+        cancel()
+        return CancelResponse.ACCEPT

@@ -21,7 +21,7 @@ from ..action import ProgramDownload
 from ..core.program.download import ProgramResult, Progress
 from ..core.program.service import ProgramRequest, ProgramService
 from ..core.sdo.request_queue import resolved
-from .goals import cancel_goal, GoalCallbacks, KeptActionServer
+from .goals import GoalCallbacks, KeptActionServer
 
 LOGGER = logging.getLogger(__name__)
 
@@ -39,9 +39,7 @@ class ProgramAction:
         self.answered = 0  # goals answered (results handed to ROS) since the start
         self._idle = threading.Condition()
         self._server = KeptActionServer.of(node, ProgramDownload, '~/program_download')
-        self._server.attach(GoalCallbacks(
-            self._answer, lambda goal_handle: cancel_goal(self._cancels, goal_handle),
-            accepted=self._start))
+        self._server.attach(GoalCallbacks(self._answer, self._cancels, accepted=self._start))
 
     def wait_until_answered(self, timeout: float) -> None:
         """Wait (shutdown) until every goal's result is decided and handed to ROS."""
