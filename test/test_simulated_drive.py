@@ -253,6 +253,14 @@ def test_cyclic_velocity_takes_the_target_at_once(axis):
     axis.wait_for('velocity_actual', lambda v: v == 0, 'standing')
 
 
+def hold_the_tick(drive: DurandDrive) -> None:
+    """Put ``drive``'s next tick an hour away: its thread held up, as a loaded machine can."""
+    scheduler = shared_scheduler()
+    with scheduler.lock:
+        scheduler.cancel(drive._tick_timer)
+        drive._tick_timer = scheduler.add(3600.0, drive._on_tick)
+
+
 # Once a defect (seen only in full suites on a loaded machine): the axis moved only on its
 # tick, and a tick held up past 0.1 s left every read of a moving axis alike; the gateway's
 # standstill check (the position within its window over 0.1 s) took it for standing. A real
@@ -261,10 +269,7 @@ def test_a_read_finds_the_axis_where_it_is_now_though_its_tick_is_held_up(axis):
     axis.enable(CSV)
     axis.set('target_velocity', 30_000)
     axis.wait_for('velocity_actual', lambda v: v == 30_000, 'the target velocity')
-    scheduler = shared_scheduler()
-    with scheduler.lock:  # the tick's thread starved, for the test's whole length
-        scheduler.cancel(axis.drive._tick_timer)
-        axis.drive._tick_timer = scheduler.add(3600.0, axis.drive._on_tick)
+    hold_the_tick(axis.drive)  # the tick's thread starved, for the test's whole length
     first = axis.get('position_actual')
     axis.wait_for('position_actual', lambda position: position > first + 3000,
                   'the axis moving on between reads')
@@ -288,9 +293,8 @@ def test_a_cyclic_position_step_is_taken_over_one_control_cycle_at_least(axis):
     axis.enable(CSP)
     drive, scheduler = axis.drive, shared_scheduler()
     start = axis.get('position_actual')
-    with scheduler.lock:  # the tick held, as a loaded machine holds it
-        scheduler.cancel(drive._tick_timer)
-        drive._tick_timer = scheduler.add(3600.0, drive._on_tick)
+    with scheduler.lock:
+        hold_the_tick(drive)  # as a loaded machine holds it
         drive._step()  # a step just now: the write's frame within the tick takes none
     axis.set('target_position', start + 250)
     with scheduler.lock:
