@@ -160,10 +160,11 @@ def state_problem(status: DriveStatus, heard: bool, enabled: bool,
     if enabled and status.faulted:
         return (f'node {node_id} is in {status.state} (error 0x{status.error_code:04X} '
                 f'{status.error}): call fault_reset and enable')
-    if enabled and status.changing_mode:
+    if enabled and status.changing_mode and not enabling:  # an enable's own: said below
         return (f'node {node_id} is changing its mode (set_mode): targets and commands that '
                 f'need it enabled are taken once that has answered')
-    if enabled and (status.state != cia402.OPERATION_ENABLED or status.needs_enable):
+    if enabled and (status.state != cia402.OPERATION_ENABLED or status.needs_enable
+                    or status.changing_mode):
         if enabling:  # not "call enable": one runs (it may wait for a braking axis to stand)
             return (f'node {node_id} is being enabled: halt, resume, home, moves and targets '
                     f'are refused until that enable has answered; quick_stop or disable stop '

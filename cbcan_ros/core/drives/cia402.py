@@ -110,10 +110,13 @@ TARGET_OF_MODE = {
 # Modes whose target is streamed: the command timeout halts them when it stops coming.
 STREAMING_MODES = frozenset({PROFILE_VELOCITY, PROFILE_TORQUE, CYCLIC_POSITION,
                              CYCLIC_VELOCITY, CYCLIC_TORQUE})
-# Modes where several vendors ignore the halt bit (their manuals: "no function" there): the
-# command timeout also sets the target that stops the axis (position: where it stands).
+# Modes where a halt also sets the target that stops the axis (position: where it stands):
+# several vendors ignore the halt bit in the cyclic modes and PT (their manuals: "no
+# function" there); in PV the velocity left in force would run again at a resume, the
+# velocity of a publisher that is gone.
 HALT_BY_TARGET = {CYCLIC_POSITION: TARGET_POSITION, CYCLIC_VELOCITY: TARGET_VELOCITY,
-                  CYCLIC_TORQUE: TARGET_TORQUE, PROFILE_TORQUE: TARGET_TORQUE}
+                  CYCLIC_TORQUE: TARGET_TORQUE, PROFILE_TORQUE: TARGET_TORQUE,
+                  PROFILE_VELOCITY: TARGET_VELOCITY}
 
 # Error codes (0x603F, EMCY) of CiA 402-2 and CiA 301, the ones drives commonly report; other
 # codes are named by their CiA 301 class.

@@ -179,8 +179,9 @@ class DriveCommands:
                 # the drive as it was before (a halt, a move); a set_mode takes it over. An
                 # enable leaves it to be enabled: a halt or move checked before the enable
                 # reaches its own step is refused as one checked during it.
-                self._service.set_enabled(drive, not enabling
-                                          and self._still_enabled(drive, True))
+                still = self._still_enabled(drive, True)
+                self._service.set_enabled(drive, not enabling and still,
+                                          changing_mode=enabling and still)
         self._tasks[drive.node_id] = task
         self._tokens[task] = token
         READS_AT_START.set(reads)  # this task's own context
@@ -583,6 +584,24 @@ class DriveCommands:
     # The commands.
 
     async def _enable(self, drive, mode: int) -> str:
+        status = self._service.status(drive.node_id)
+        # Enabled before (or by a set_mode this enable replaced): given back so when this
+        # enable fails before it halts the axis, as a set_mode is, and the command timeout
+        # watches it again. Marked ``changing_mode``, which whatever makes a fresh enable
+        # needed meanwhile clears (a stop, a fault, leaving OPERATION_ENABLED, a boot).
+        enabled = status.state == cia402.OPERATION_ENABLED and (not status.needs_enable
+                                                              or status.changing_mode)
+        self._service.set_enabled(drive, False, changing_mode=enabled)
+        try:
+            return await self._enable_from_here(drive, mode)
+        except BaseException:
+            # Halted for the mode change, it needs a fresh enable (``_own``): not given back
+            # meanwhile, when a target would resume it in the old mode.
+            if self._is_current(drive) and not _halted_for_a_mode(drive):
+                self._service.set_enabled(drive, self._still_enabled(drive, enabled))
+            raise
+
+    async def _enable_from_here(self, drive, mode: int) -> str:
         unbooted = self._service.boot_refusal(drive.node_id)
         if unbooted:
             raise DriveFailed(f'node {drive.node_id}: {unbooted}; enable refused, nothing was '
@@ -594,7 +613,6 @@ class DriveCommands:
                                   f'nothing was sent to the controlword (or give that up: '
                                   f'drives.keep_running_if_gateway_dies)')
         await self._mapping_known(drive)
-        self._service.set_enabled(drive, False)
         if self._service.status(drive.node_id).state != cia402.OPERATION_ENABLED:
             drive.pp_goal = None  # enabled afresh, a drive takes where it stands as its base
         mode = mode or self._service.status(drive.node_id).mode
@@ -685,6 +703,16 @@ class DriveCommands:
     async def _resume(self, drive, _mode: int) -> str:
         if _halted_for_a_mode(drive):  # since the request was checked
             raise DriveFailed(f'node {drive.node_id}: {RESUME_REFUSED}; nothing was sent')
+        mode = self._service.status(drive.node_id).mode
+        if mode in (cia402.PROFILE_POSITION, cia402.HOMING):
+            # The move, set-points or homing it was halted in have ended (a command ends
+            # them, this one too): released as it is, the drive would run on to their
+            # set-point, or home, with nobody watching. Held where it stands, as enable holds.
+            held = await self._hold(drive, mode)
+            await self._release_held(drive, mode, held.get(cia402.TARGET_POSITION, 0))
+            return (f'node {drive.node_id} resumed, held where it stands: the '
+                    f'{"move or set-points" if mode == cia402.PROFILE_POSITION else "homing"} '
+                    f'it was halted in ended with the halt; send a new one to go on')
         await self._release(drive, {}, halt='')
         return f'node {drive.node_id} resumed'
 
@@ -736,9 +764,10 @@ class DriveCommands:
             if hold is not None:
                 await self._release_held(drive, mode, hold.get(cia402.TARGET_POSITION, 0))
         except BaseException:
-            # Halted for it, the drive needs a fresh enable all the same (``_own``). Replaced,
+            # Halted for it, the drive needs a fresh enable all the same (``_own``): not
+            # given back meanwhile, when a target would resume it in the old mode. Replaced,
             # the drive is the newer command's, which had it given back (``_own``).
-            if self._is_current(drive):
+            if self._is_current(drive) and not _halted_for_a_mode(drive):
                 self._service.set_enabled(drive, self._still_enabled(drive, enabled))
             raise
         finally:
