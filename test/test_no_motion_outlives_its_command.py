@@ -13,14 +13,14 @@ import threading
 
 from std_msgs.msg import Float64
 import test_drives
-from test_drives import CSP, CSV, move_under_way, NODE, PV, SCALE, WAIT
+from test_drives import CSP, CSV, move_under_way, NODE, PP, PV, SCALE, WAIT
 
 from cbcan_ros.action import DriveMove
 from cbcan_ros.simulation.durand.device import DurandDevice
 
 from conftest import wait_for_future, wait_until
 
-TARGET_POSITION, TARGET_VELOCITY = 0x607A, 0x60FF
+TARGET_POSITION, TARGET_VELOCITY, PROFILE_VELOCITY = 0x607A, 0x60FF, 0x6081
 HALT = 0x100
 # An SDO upload request of the velocity actual value (0x606C): the first thing an enable in
 # another mode asks of a moving axis, before it halts it.
@@ -103,3 +103,38 @@ def test_a_resume_after_the_command_timeout_in_pv_keeps_the_axis_standing(rig):
     assert axis.drive.value(TARGET_VELOCITY) == struct.pack('<i', 0)
     axis.target.publish(Float64(data=0.5))
     wait_until(lambda: axis.drive.velocity == 500, WAIT, 'a new target moving it again')
+
+
+def test_pp_set_points_on_the_topic_run_at_the_configured_profile_velocity(rig):
+    # Once a defect (a red team's, 3 of 3): after a fast move, set-points on the target
+    # topic ran at that move's velocity, 20 times the drive's configured one here.
+    axis = rig()
+    configured = axis.drive.value(PROFILE_VELOCITY)
+    axis.enable(PP)
+    assert wait_for_future(wait_for_future(axis.mover.send_goal_async(DriveMove.Goal(
+        node_id=NODE, position=1.0, velocity=20.0)), WAIT).get_result_async(),
+        WAIT).result.success
+    assert axis.drive.value(PROFILE_VELOCITY) == struct.pack('<I', 20_000)
+    axis.target.publish(Float64(data=1.01))
+    wait_until(lambda: axis.drive.position == 1010, WAIT, 'the set-point reached')
+    assert axis.drive.value(PROFILE_VELOCITY) == configured
+
+
+def test_a_goal_refused_before_anything_is_sent_says_where_the_drive_stands(rig):
+    # Once a defect (a red team's): such results said position 0.0 wherever the axis stood.
+    axis = rig()
+    axis.enable(PP)
+    assert wait_for_future(wait_for_future(axis.mover.send_goal_async(DriveMove.Goal(
+        node_id=NODE, position=1.5, velocity=20.0)), WAIT).get_result_async(),
+        WAIT).result.success
+    for goal, says in ((DriveMove.Goal(node_id=NODE, position=math.nan), 'finite'),
+                       (DriveMove.Goal(node_id=NODE, position=2.0, velocity=-1.0), 'velocity'),
+                       (DriveMove.Goal(node_id=NODE, position=2.0, velocity=1e-9), 'below')):
+        result = wait_for_future(wait_for_future(axis.mover.send_goal_async(goal), WAIT)
+                                 .get_result_async(), WAIT).result
+        assert not result.success and says in result.message, result.message
+        assert result.position == 1.5, (result.position, result.message)
+    result = wait_for_future(wait_for_future(axis.mover.send_goal_async(DriveMove.Goal(
+        node_id=NODE + 1, position=1.0)), WAIT).get_result_async(), WAIT).result
+    assert not result.success and 'not a drive' in result.message, result.message
+    assert math.isnan(result.position)

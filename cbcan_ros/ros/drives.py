@@ -380,6 +380,18 @@ class DriveTopics:
 
     # The move action.
 
+    def _refused_move(self, goal_handle, joint: Optional[Joint], refusal: str):
+        """Abort a move refused before anything was sent; its result says where the drive is.
+
+        NaN for a node that is not a drive (nothing is known of it).
+        """
+        goal_handle.abort()
+        status = self._service.status(joint.node_id) if joint is not None else None
+        return DriveMove.Result(
+            success=False, message=refusal,
+            position=float(joint.position(status.position)) if status else math.nan,
+            error_code=status.error_code if status else 0)
+
     async def _execute_move(self, goal_handle):
         goal = goal_handle.request
         joint = self._joints.get(goal.node_id)
@@ -402,19 +414,16 @@ class DriveTopics:
             refusal = (f"velocity {goal.velocity} must be 0 (the drive's profile velocity, "
                        f'0x6081) or more: the position gives the direction; nothing was sent')
         if refusal:
-            goal_handle.abort()
-            return DriveMove.Result(success=False, message=refusal)
+            return self._refused_move(goal_handle, joint, refusal)
         position = joint.to_device(cia402.PROFILE_POSITION, goal.position, goal.relative)
         velocity = abs(goal.velocity * joint.velocity_scale)  # the scale may flip the axis
         if not (math.isfinite(position) and math.isfinite(velocity)):
-            goal_handle.abort()
-            return DriveMove.Result(success=False, message=(
+            return self._refused_move(goal_handle, joint, (
                 f'position {goal.position} or velocity {goal.velocity} does not fit the '
                 f"drive's units (node_{joint.node_id} scales); nothing was sent"))
         if goal.velocity and velocity < 1:
             # 0 would be the drive's own profile velocity: a slow move must not run at that.
-            goal_handle.abort()
-            return DriveMove.Result(success=False, message=(
+            return self._refused_move(goal_handle, joint, (
                 f'velocity {goal.velocity} is {velocity:g} counts/s at '
                 f'node_{joint.node_id}.velocity_scale {joint.velocity_scale:g}: below the 1 '
                 f'count/s a drive takes (0 means its profile velocity); nothing was sent'))

@@ -848,10 +848,7 @@ class DriveCommands:
         if problem:
             raise DriveFailed(problem)
         await self._change_to_pp(drive)
-        # 0: the profile velocity the drive was configured with, not the last move's.
-        velocity = velocity or drive.profile_velocity
-        if velocity and velocity != drive.objects.value(cia402.PROFILE_VELOCITY_OBJECT):
-            await self._send(drive, {cia402.PROFILE_VELOCITY_OBJECT: velocity})
+        await self._profile_velocity(drive, velocity)
         mark = await self._new_set_point(drive, wanted)
         while True:
             status = await self._after(drive, mark, lambda s: True)
@@ -894,6 +891,7 @@ class DriveCommands:
         meanwhile is taken at once, and the check is then the new one's.
         """
         await self._change_to_pp(drive)
+        await self._profile_velocity(drive)
         node_id = drive.node_id
         if node_id not in self._set_points:
             return 'no set-point left to take'  # a stream replaced before it began
@@ -915,6 +913,15 @@ class DriveCommands:
         # a set-point releases the halt.
         if self._stands_first(drive, cia402.PROFILE_POSITION):
             await self._change_mode(drive, cia402.PROFILE_POSITION)
+
+    async def _profile_velocity(self, drive, velocity: int = 0) -> None:
+        """Have the drive's profile velocity (0x6081) be ``velocity``.
+
+        0: the one the drive was configured with, not the last move's.
+        """
+        velocity = velocity or drive.profile_velocity
+        if velocity and velocity != drive.objects.value(cia402.PROFILE_VELOCITY_OBJECT):
+            await self._send(drive, {cia402.PROFILE_VELOCITY_OBJECT: velocity})
 
     async def _new_set_point(self, drive, position: int) -> int:
         """Hand the drive a set-point (bit 4 up, wait for bit 12, bit 4 down); return a mark.
