@@ -83,6 +83,16 @@ def test_a_type_of_another_size_is_an_error_naming_type_and_length(cli, value_ty
     assert out.splitlines() == ['data:  92 01 02 00  (4 bytes)'], out  # the bytes still shown
 
 
+@pytest.mark.parametrize('arguments, what', [
+    (('sdo-read', '5', '0x6000'), 'read node 5 object 0x6000:00'),
+    (('sdo-write', '2', '0x6000', '0', '3', '--type', 'u8'), 'write node 2 object 0x6000:00')])
+def test_an_abort_names_the_node_and_the_object(cli, arguments, what):
+    # Once a new user's complaint: "error: SDO abort 0x06020000 NOT_EXIST" named neither.
+    status, out, err = cli(*arguments)
+    assert status == 1, out + err
+    assert err.startswith(f'error: {what}: SDO abort 0x06020000 NOT_EXIST'), err
+
+
 def test_an_eds_name_reads_and_writes_with_the_eds_type(cli):
     status, out, err = cli('sdo-write', '5', HEARTBEAT, '1000')
     assert status == 0, err

@@ -60,10 +60,11 @@ class RequestFailed(GatewayError):
     """The gateway answered ``success: false``: a device's abort, a refused request.
 
     ``abort_code`` (0 when the answer has none), ``message``, ``response``; ``detail`` is
-    the message with its abort code.
+    the message with its abort code; ``what`` the request (``read node 5 object 0x6000:00``).
     """
 
     def __init__(self, what: str, response):
+        self.what = what
         self.response = response
         self.abort_code = getattr(response, 'abort_code', 0)
         self.message = response.message

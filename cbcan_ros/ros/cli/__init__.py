@@ -82,7 +82,7 @@ def run(client: Client, args: argparse.Namespace) -> int:
     try:
         return args.run(client, args)
     except RequestFailed as error:
-        return print_refusal(error.response)
+        return print_refusal(error.response, error.what)
     except (GatewayUnavailable, UsageError) as error:
         print(f'error: {error}', file=sys.stderr)
         return 2
