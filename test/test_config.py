@@ -173,6 +173,22 @@ CASES = [
                'allowed: sdo.timeout'), process=True),
     case('unknown-close', 'node_guardng:=[3]',
          says=('parameter node_guardng: [3] is given', 'allowed: node_guarding')),
+    # A node's parameter that no list of node ids made exist would do nothing, silently.
+    case('drive-parameter-of-no-drive', 'nodes:=[5]', 'node_5.joint:=wheel',
+         says=("parameter node_5.joint: 'wheel' is given, but node 5 is not in drives.nodes",
+               'allowed: drives.nodes with 5 in it'), process=True),
+    case('drive-parameter-of-no-node', 'node_6.position_scale:=1000.0',
+         says=('parameter node_6.position_scale: 1000.0 is given, but node 6 is not in '
+               'drives.nodes',)),
+    case('eds-of-no-node', 'node_9.eds:=/robot/drive.eds',
+         says=("parameter node_9.eds: '/robot/drive.eds' is given, but node 9 is in none of "
+               'nodes, node_guarding, pdo.nodes or drives.nodes',)),
+    case('node-parameter-without-underscore', 'drives.nodes:=[6]', 'node6.joint:=x',
+         says=("parameter node6.joint: 'x' is not a parameter name: a node's parameters are "
+               'node_<id>.NAME', 'allowed: node_6.joint')),
+    case('node-parameter-unknown', 'nodes:=[5]', 'node_5.jiont:=x',
+         says=("parameter node_5.jiont: 'x' is given, but no node has such a parameter",
+               'node_<id>.joint')),
     # The same mistakes in a parameter file.
     case('file-type', says=("parameter sdo.timeout: 'fast' is a string, not a number",),
          params_file='sdo: {timeout: fast}'),

@@ -49,6 +49,12 @@ OPTIONS_WITH_A_PARAMETER = {'interface': 'can.interface', 'channel': 'can.channe
 
 # Linux network interface names (SocketCAN channels) are at most 15 characters.
 INTERFACE_NAME = re.compile(r'[^\s/:]{1,15}')
+# A parameter of one node, as written (node_6.joint; node6.joint, a slip of the underscore).
+NODE_PARAMETER = re.compile(r'node_?(\d+)\.(.+)')
+# What each list of node ids gives its nodes: node_<id>.eds, or a drive's parameters.
+DEVICE_LISTS = 'nodes, node_guarding, pdo.nodes or drives.nodes'
+DRIVE_PARAMETERS = ('joint', 'position_scale', 'velocity_scale', 'torque_scale', 'hold_torque',
+                    'position_offset')
 
 _KINDS = {
     ParameterType.PARAMETER_BOOL: 'true or false',
@@ -128,6 +134,10 @@ def check_unknown(node: Node, declared: Iterable[str]) -> None:
     for name in sorted(overrides):
         if node.has_parameter(name):
             continue
+        of_a_node = NODE_PARAMETER.fullmatch(name)
+        if of_a_node:
+            raise ConfigurationError(name, overrides[name].value,
+                                     *_node_parameter_problem(name, *of_a_node.groups()))
         group = name.split('.')[0] + '.'
         close = difflib.get_close_matches(name, declared, n=3, cutoff=0.8)
         if group not in groups and not close:
@@ -138,6 +148,25 @@ def check_unknown(node: Node, declared: Iterable[str]) -> None:
         raise ConfigurationError(name, overrides[name].value,
                                  f'is given, but {node.get_name()} has no such parameter',
                                  ', '.join(candidates) + hint)
+
+
+def _node_parameter_problem(name: str, node_id: str, key: str) -> Tuple[str, str]:
+    """Return (problem, allowed) of a parameter of a node that no list made exist.
+
+    A node's parameters exist only for the ids of the lists that name it: given for
+    another, or misspelt, it would do nothing, silently.
+    """
+    right = f'node_{int(node_id)}.{key}'
+    if name != right:
+        return "is not a parameter name: a node's parameters are node_<id>.NAME", right
+    if key in DRIVE_PARAMETERS:
+        return (f'is given, but node {int(node_id)} is not in drives.nodes: a node has the '
+                f'parameters of a drive only there'), f'drives.nodes with {int(node_id)} in it'
+    if key == 'eds':
+        return (f'is given, but node {int(node_id)} is in none of {DEVICE_LISTS}'), (
+            f'one of those lists with {int(node_id)} in it')
+    return ('is given, but no node has such a parameter', ', '.join(
+        f'node_<id>.{known}' for known in ('eds', *DRIVE_PARAMETERS)))
 
 
 def check_interface(interface: str) -> None:
