@@ -93,6 +93,12 @@ def test_an_abort_names_the_node_and_the_object(cli, arguments, what):
     assert err.startswith(f'error: {what}: SDO abort 0x06020000 NOT_EXIST'), err
 
 
+def test_lifecycle_of_a_plain_gateway_says_it_has_none(cli):
+    status, out, err = cli('lifecycle', 'configure')
+    assert status == 2, out + err
+    assert 'is not a managed node' in err and 'cbcan_lifecycle_node' in err, err
+
+
 def test_an_eds_name_reads_and_writes_with_the_eds_type(cli):
     status, out, err = cli('sdo-write', '5', HEARTBEAT, '1000')
     assert status == 0, err

@@ -4,10 +4,13 @@ The node runs as a separate process with a simulated device; this process plays
 ``ros2 lifecycle set`` (lifecycle_msgs/ChangeState), launch systems and the robot's callers.
 """
 
+import contextlib
+import io
 import re
 import signal
 import threading
 import time
+from typing import Tuple
 import uuid
 
 import can
@@ -25,6 +28,7 @@ from test_shutdown import answered_within
 
 from cbcan_ros.action import DriveMove
 from cbcan_ros.msg import CanFrame, LssIdentity, NodeStates, Pdo, SdoAccess
+from cbcan_ros.ros.cli import build_parser, Client, run
 from cbcan_ros.ros.interface import NODE_STATES_QOS
 from cbcan_ros.ros.node import SHUTDOWN_LIMIT
 from cbcan_ros.ros.service_qos import ACTION_SERVICES_QOS
@@ -287,6 +291,35 @@ def test_a_transition_the_state_does_not_have_is_refused_not_fatal(start_node, c
     managed.node.process.send_signal(signal.SIGINT)
     assert managed.node.wait(STOP_TIMEOUT) == 0
     assert 'Traceback' not in managed.node.output()
+
+
+def test_the_command_line_tool_drives_the_transitions_without_the_ros2_cli(start_node,
+                                                                          client_node):
+    # A new user's walkthrough found lifecycle.md showing only ``ros2 lifecycle set``, which
+    # a machine without the ros2 CLI (as this one) has not.
+    managed = Managed(start_node, client_node)
+    lifecycle = Client(managed.name, ANSWER)
+    try:
+        def cli(*transition: str) -> Tuple[int, str, str]:
+            out, err = io.StringIO(), io.StringIO()
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                status = run(lifecycle, build_parser().parse_args(['lifecycle', *transition]))
+            return status, out.getvalue(), err.getvalue()
+        assert cli() == (0, 'unconfigured\n', '')
+        assert cli('configure') == (0, f'ok: {managed.name} is inactive\n', '')
+        status, _, err = cli('configure')
+        assert status == 1 and err == (f'error: {managed.name} is inactive: configure is not '
+                                       f'a transition from there (from inactive: activate, '
+                                       f'cleanup, shutdown)\n'), err
+        assert cli('activate') == (0, f'ok: {managed.name} is active\n', '')
+        read = managed.client(SdoRead, 'sdo_read')
+        assert wait_for_future(read.call_async(SdoRead.Request(node_id=DEVICE, index=0x1000)),
+                               ANSWER).success
+        assert cli('deactivate') == (0, f'ok: {managed.name} is inactive\n', '')
+        assert cli('cleanup') == (0, f'ok: {managed.name} is unconfigured\n', '')
+        assert cli('shutdown') == (0, f'ok: {managed.name} is finalized\n', '')
+    finally:
+        lifecycle.close()
 
 
 def test_a_failed_configure_says_why_and_leaves_nothing_behind(start_node, client_node):

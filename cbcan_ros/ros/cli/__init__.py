@@ -30,6 +30,7 @@ Examples (the gateway started by ``make run`` is ``/can0/cbcan``)::
     cbcan_cli drives                                      # every drive's state
     cbcan_cli dump 7F0:7F0                                 # raw CAN frames, as candump
     cbcan_cli send 7F0#DEADBEEF 18FF0001#01.02            # as cansend
+    cbcan_cli lifecycle configure                         # a managed gateway's transition
 
 Objects are given by index (a number) or by the name the node's EDS or DCF file gives them.
 The file is the gateway's parameter ``node_<id>.eds`` (asked of the running gateway) or
@@ -48,14 +49,14 @@ from typing import Optional, Sequence
 
 from ..client import DEFAULT_GATEWAY, DEFAULT_WAIT, RequestFailed
 from ..service_caller import GatewayUnavailable
-from . import boot, drive, lss, mailbox, move, nmt, pdo, program, raw, sdo
+from . import boot, drive, lifecycle, lss, mailbox, move, nmt, pdo, program, raw, sdo
 from .arguments import positive_seconds
 from .errors import print_refusal, UsageError
 from .standalone_client import Client
 
 # The command groups, each a module with add_commands(commands), in the order --help lists
 # their commands.
-COMMAND_GROUPS = (sdo, nmt, boot, program, mailbox, lss, pdo, drive, move, raw)
+COMMAND_GROUPS = (sdo, nmt, boot, program, mailbox, lss, pdo, drive, move, raw, lifecycle)
 
 
 def build_parser() -> argparse.ArgumentParser:
