@@ -29,9 +29,10 @@ from .answer_retry import retry_the_node_services
 from .config import NodeParameters
 from .goals import KeptActionServer
 from .interface import ANSWER_GRACE, GatewayInterface
+from .rclpy_gaps import end_spin_once
 
 # The longest an idle executor sleeps before it looks whether shutdown began (it is woken
-# at once anyway; this only bounds a missed wake-up).
+# at once anyway, ``end_spin_once``; this only bounds a missed wake-up).
 SPIN_CHECK = 1.0
 
 # How long shutdown waits for a spin in progress to end; a backlog of requests, each
@@ -186,7 +187,7 @@ def run(make_node: Callable[[], Node], program: str, args=None) -> int:
     # still takes is answered at once), then shut the executor down. Requests it never took
     # are answered when the services go (GatewayInterface.destroy).
     spinning.clear()
-    executor.wake()
+    end_spin_once(node)
     spinner.join(SPIN_STOP)
     executor.shutdown(timeout_sec=ANSWER_GRACE)
     node.destroy_node()

@@ -27,6 +27,9 @@ in docs/library_gaps.md:
    ``EventsExecutor`` spins (a managed node's cleanup or shutdown), an event that came in
    between ended the process with a segmentation fault.
    :func:`without_default_event_handlers` makes a node's without them.
+9. ``EventsExecutor.wake()`` does not end a ``spin_once(timeout)`` waiting for work: a node
+   stopping its spin loop waited out the timeout (up to a second) at every exit.
+   :func:`end_spin_once` wakes it with a timer due at once.
 """
 
 import re
@@ -174,6 +177,17 @@ def without_default_event_handlers(node: Node) -> None:
                                    **kwargs)
 
     node.create_publisher, node.create_subscription = publisher, subscription
+
+
+def end_spin_once(node: Node) -> None:
+    """Have a ``spin_once`` of ``node``'s executor that waits for work return now.
+
+    A timer due at once, cancelled by its one call: ``EventsExecutor`` takes no guard
+    conditions, and its ``wake()`` leaves a ``spin_once`` waiting out its timeout.
+    """
+    def once() -> None:
+        timer.cancel()
+    timer = node.create_timer(0.0, once)
 
 
 def parameter_overrides(node: Node) -> Dict[str, Parameter]:
