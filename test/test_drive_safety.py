@@ -345,8 +345,10 @@ class DriveRig:
 
 
 @pytest.fixture
-def rig(start_node, client_node, start_durand):
+def rig(start_durand, start_node, client_node):
     """Return ``rig(*parameters, program=..., pdos=...)``: a DriveRig, closed after the test."""
+    # The drive set up first is stopped last: the node's exit stops a live drive (one
+    # already gone would keep its shutdown waiting for the stop's confirmation, a second).
     made = []
 
     def factory(*parameters: str, program: str = 'cbcan_node', pdos=PDOS) -> DriveRig:

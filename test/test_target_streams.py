@@ -102,8 +102,10 @@ LAYOUTS = [COMBINED, VENDOR]
 
 
 @pytest.fixture
-def rig(start_node, client_node, start_durand):
+def rig(start_durand, start_node, client_node):
     """Return ``rig(layout, *parameters)``: a DriveRig with SYNC, closed after the test."""
+    # The drive set up first is stopped last: the node's exit stops a live drive (one
+    # already gone would keep its shutdown waiting for the stop's confirmation, a second).
     made = []
 
     def factory(layout: Layout, *parameters: str, period: float = PERIOD) -> DriveRig:
