@@ -1,6 +1,7 @@
 """SDO read/write through the ROS services, against simulated devices on a virtual bus."""
 
 import math
+import re
 import struct
 import threading
 import time
@@ -85,6 +86,26 @@ def test_silent_device_times_out_with_one_request_and_an_abort(gateway):
     aborts = [f for f in frames if f.data[0] == 0x80]
     assert len(requests) == 1, 'a timed-out request must not be repeated'
     assert struct.unpack_from('<I', aborts[0].data, 4)[0] == 0x05040000
+
+
+def test_a_timeout_says_when_the_node_was_never_heard_or_has_fallen_silent(make_gateway):
+    # A new user's wrong node id met a bare TIMEOUT, the same as a device slow to answer.
+    gateway = make_gateway(**{'heartbeat.timeout': 0.3})
+    never = gateway.call('sdo_read', node_id=42, index=0x1000, subindex=0, timeout=0.2)
+    assert never.abort_code == 0x05040000
+    assert never.message.endswith('; node 42 has not been heard on the bus since the gateway '
+                                  'started (no heartbeat, boot-up or node guarding reply): '
+                                  'check its node id, bit rate, power and wiring'), never.message
+    device = gateway.device(5)
+    wait_until(lambda: gateway.call('nmt_state', node_id=5).state_name != 'NOT_DETECTED', 10.0,
+               'node 5 heard')
+    device.stop()
+    wait_until(lambda: gateway.call('nmt_state', node_id=5).state_name == 'NOT_DETECTED', 10.0,
+               'node 5 NOT_DETECTED')
+    silent = gateway.call('sdo_read', node_id=5, index=0x1000, subindex=0, timeout=0.2)
+    assert silent.abort_code == 0x05040000
+    assert re.search(r'; node 5 has not been heard for \d+\.\d s \(NOT_DETECTED\)$',
+                     silent.message), silent.message
 
 
 def test_timed_out_write_is_sent_exactly_once(gateway):

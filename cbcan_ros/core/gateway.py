@@ -513,6 +513,18 @@ class Gateway:
         reason = self.bus.down_reason
         return None if reason is None else f'the CAN bus is down: {reason}'
 
+    def _silence_of(self, node_id: int) -> str:
+        """Return how long ``node_id`` has not been heard on the bus, '' while it is heard."""
+        status = self.monitor.status(node_id)
+        if status.detected:
+            return ''
+        if status.last_seen is None:
+            return (f'node {node_id} has not been heard on the bus since the gateway started '
+                    f'(no heartbeat, boot-up or node guarding reply): check its node id, bit '
+                    f'rate, power and wiring')
+        return (f'node {node_id} has not been heard for {status.last_seen_age:.1f} s '
+                f'(NOT_DETECTED)')
+
     def _open_bus(self) -> can.BusABC:
         options = dict(self.config.bus_options)
         if self.config.bitrate:
@@ -567,6 +579,7 @@ class Gateway:
                 self.network.subscribe(client.tx_cobid, client.on_response)
                 channel = SdoChannel(client, node_id, self._deadlines,
                                      self.config.block_transfer, self.config.queue_limit,
-                                     self.config.read_retries)
+                                     self.config.read_retries,
+                                     lambda: self._silence_of(node_id))
                 self._channels[node_id] = channel
         return request(channel)

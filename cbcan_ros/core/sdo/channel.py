@@ -68,12 +68,16 @@ class SdoChannel:
     request's timeout covers its time in the queue and its transfer. Block transfer is
     tried first when enabled; a device that does not know it (abort 0x05040001, or a normal
     upload response) gets segmented transfers from then on; nothing was transferred, so
-    that is safe even for writes.
+    that is safe even for writes. ``silence()`` says how long the device has not been heard,
+    '' while it is: a request that timed out adds it, so a caller who typed a wrong node id
+    or whose device is off learns that, not only that no answer came.
     """
 
     def __init__(self, client: StrictSdoClient, node_id: int, deadlines: Deadlines,
-                 block_transfer: bool, queue_limit: int, read_retries: int = 0):
+                 block_transfer: bool, queue_limit: int, read_retries: int = 0,
+                 silence: Callable[[], str] = str):
         self.node_id = node_id
+        self._silence = silence
         self._client = client
         self._deadlines = deadlines
         self._block = block_transfer
@@ -251,6 +255,14 @@ class SdoChannel:
         answer(job.future, result)
 
     def _access(self, access: Access, deadline: float) -> SdoResult:
+        result = self._attempts(access, deadline)
+        if result.abort_code == abort_codes.TIMEOUT:
+            silence = self._silence()
+            if silence:
+                return SdoResult.failed(f'{result.message}; {silence}', abort_codes.TIMEOUT)
+        return result
+
+    def _attempts(self, access: Access, deadline: float) -> SdoResult:
         index, subindex = access.index, access.subindex
         if access.write:
             return self._transfer(index, subindex, deadline, lambda block: download(
