@@ -11,12 +11,15 @@ import math
 import struct
 import threading
 
+import pytest
 from std_msgs.msg import Float64
 import test_drives
 from test_drives import CSP, CSV, move_under_way, NODE, PP, PV, SCALE, WAIT
 
 from cbcan_ros.action import DriveMove
 from cbcan_ros.simulation.durand.device import DurandDevice
+from cbcan_ros.simulation.durand.drive_objects import PROFILE_ACCELERATION
+from cbcan_ros.simulation.durand.drive_pdos import drive_pdos as layout_pdos
 
 from conftest import wait_for_future, wait_until
 
@@ -27,6 +30,40 @@ HALT = 0x100
 VELOCITY_READ = bytes([0x40, 0x6C, 0x60])
 
 rig = test_drives.rig  # a gateway with one simulated drive (a fixture)
+
+
+def unanswered_writes(monkeypatch, lost) -> threading.Event:
+    """Have the simulated drive drop the SDO writes ``lost(index, value)`` picks, once armed.
+
+    Return the event that arms it. As a drive that never gets the frame: nothing is applied,
+    nothing answered, and the write fails at its SDO timeout.
+    """
+    armed = threading.Event()
+
+    def on_sdo_frame(device, handler, cob_id, data):
+        data = bytes(data)
+        expedited_write = data[0] & 0xE3 == 0x23
+        if not (armed.is_set() and expedited_write and lost(
+                int.from_bytes(data[1:3], 'little'), int.from_bytes(data[4:8], 'little'))):
+            answer_sdo(device, handler, cob_id, data)
+    answer_sdo = DurandDevice._on_sdo_frame
+    monkeypatch.setattr(DurandDevice, '_on_sdo_frame', on_sdo_frame)
+    return armed
+
+
+def the_halt(index: int, value: int) -> bool:
+    """Pick the controlword writes with the halt bit."""
+    return index == 0x6040 and bool(value & HALT)
+
+
+def csv_ignoring_the_halt_bit(rig, **parameters):
+    """Return a drive run by SDO alone, enabled in CSV at 1000 counts/s, ignoring bit 8."""
+    axis = rig(pdos=layout_pdos('sdo_only'), **parameters)
+    axis.drive.halts_in_cyclic_modes = False
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=1.0))
+    wait_until(lambda: axis.drive.velocity == 1000, WAIT, 'the drive at 1000 counts/s')
+    return axis
 
 
 def test_an_enable_that_fails_before_it_halts_a_streaming_axis_leaves_it_to_the_command_timeout(
@@ -138,3 +175,59 @@ def test_a_goal_refused_before_anything_is_sent_says_where_the_drive_stands(rig)
         node_id=NODE + 1, position=1.0)), WAIT).get_result_async(), WAIT).result
     assert not result.success and 'not a drive' in result.message, result.message
     assert math.isnan(result.position)
+
+
+@pytest.mark.parametrize('command, mode', [('enable', CSP), ('halt', 0)])
+def test_a_command_whose_time_runs_out_during_its_halt_still_sends_the_stopping_target(
+        rig, monkeypatch, command, mode):
+    # Once a defect (a red team's, 8 of 8 with a drive slow to take a halt): the halt and
+    # the target that stops a drive ignoring it are two writes, and a command whose time
+    # ran out between them never sent the second. The axis ran on, shown halted (a halt) or
+    # needing an enable (an enable), so neither the command timeout nor a halt stopped it.
+    armed = unanswered_writes(monkeypatch, the_halt)
+    axis = csv_ignoring_the_halt_bit(rig)
+    armed.set()
+    answer = axis.command(command, mode, timeout=0.3)
+    assert not answer.success and answer.message.startswith('timed out'), answer.message
+    wait_until(lambda: axis.drive.velocity == 0, WAIT,
+               'the axis stopped by the stopping target that follows the halt')
+    assert axis.drive.value(0x60FF) == struct.pack('<i', 0)
+
+
+def test_an_enable_that_failed_after_writing_the_new_mode_needs_a_fresh_one(rig, monkeypatch):
+    # Once a defect (a red team's, 5 of 5): such an enable gave the drive back "enabled" in
+    # the new mode, and the controller's stream of velocity 0 for the old mode went to it as
+    # position 0: the axis jumped thousands of counts.
+    armed = unanswered_writes(monkeypatch, lambda index, _value: index == 0x6060)
+    axis = rig(pdos=layout_pdos('sdo_only'))
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=0.0))
+    armed.set()
+    answer = axis.command('enable', CSP, timeout=WAIT)
+    assert not answer.success, answer.message
+    assert 'the new mode was written: the drive needs a fresh enable' in answer.message, \
+        answer.message
+    refused = axis.gateway.node.gateway.drives.target(NODE, 0.0)
+    assert not refused.success and 'needs a fresh enable' in refused.message, refused.message
+
+
+def test_a_resume_in_pp_waits_for_the_axis_to_stand_before_it_holds_it(rig):
+    # Once a defect (a red team's, 5 of 5): resume set the new set-point where a braking axis
+    # happened to be, cutting its ramp short (a real drive overshoots and comes back).
+    axis = rig()
+    axis.drive.set_value(PROFILE_ACCELERATION, 0, struct.pack('<I', 600))  # 3.3 s to stand
+    goal = move_under_way(axis)  # at 2000 counts/s
+    speeds = []
+    take = axis.drive._take_set_point
+
+    def taken(controlword):
+        speeds.append(axis.drive.velocity)
+        take(controlword)
+    axis.drive._take_set_point = taken
+    wait_for_future(goal.cancel_goal_async(), WAIT)
+    cancelled = wait_for_future(goal.get_result_async(), WAIT).result
+    assert 'the halt was not confirmed' in cancelled.message, cancelled.message
+    assert axis.drive.velocity != 0, 'stood already: nothing to test'
+    resumed = axis.command('resume', timeout=WAIT)
+    assert resumed.success, resumed.message
+    assert speeds == [0], f'the set-point came at velocities {speeds}'

@@ -66,6 +66,12 @@ HOMING_ATTAINED: contextvars.ContextVar = contextvars.ContextVar('homing_attaine
 # before the enable, or by it for the mode change).
 STILL_BRAKING = ('; the axis was still braking from its halt and stays halted: call enable '
                  'again once it stands, or give the enable a timeout longer than its ramp')
+# What a resume in PP or homing that timed out adds: it waits for the axis to stand.
+RESUME_BRAKING = ('; the axis was still braking from its halt and stays halted: call resume '
+                  'again once it stands, or give it a timeout longer than its ramp')
+# What an enable adds that timed out after it wrote the new mode.
+MODE_CHANGED = ('; the new mode was written: the drive needs a fresh enable (it holds where '
+                'it stood)')
 # What a halt that timed out adds: the drive holds the halt, whether or not it shows a stand.
 HALT_HOLDS = ('; the halt holds, but the drive did not show a stand in time (how a stand '
               'is told in each mode: docs/drives.md, halt)')
@@ -426,10 +432,7 @@ class DriveCommands:
             if (read.get(cia402.VELOCITY_ACTUAL) == 0
                     and await self._standing_confirmed(drive)):
                 return False
-            stopping: Dict[int, int] = {}
-            await self._send(drive, {}, halt=MODE_CHANGE, stopping=stopping)
-            if stopping:  # a write of its own, as ``_halt`` sends it
-                await self._send(drive, stopping)
+            await self._halt_and_stop(drive, MODE_CHANGE)
             ours = True
         if braking:
             ON_TIMEOUT.set(braking)
@@ -437,6 +440,31 @@ class DriveCommands:
         threshold = await velocity_threshold(drive, SEND_TIMEOUT)
         await self._until_standing(drive, status.mode, threshold, halting)
         return ours
+
+    async def _halt_and_stop(self, drive, halt: str) -> None:
+        """Set the halt bit (naming ``halt``), then the target that stops the axis in its mode.
+
+        The halt's frames that map the target repeat the stopping one, not an older target
+        the axis has left (moved since by an SDO write, or another master). The halt bit
+        alone leaves a drive that ignores it (the cyclic modes, several vendors) running: the
+        stopping target follows in a write of its own, after the halt (in one write, a frame
+        carrying the target with the controlword could follow another carrying the halt,
+        and a SYNC of another master between the two would apply the older frame the drive
+        holds). Both go out even when the command ends between them (its time runs out
+        while the halt's write waits for its SDO answer or a SYNC, a newer command replaces
+        it): the halt alone would leave such a drive running, marked halted.
+        """
+        async def both() -> None:
+            stopping: Dict[int, int] = {}
+            try:
+                await self._send(drive, {}, halt=halt, stopping=stopping)
+            finally:  # a halt the drive did not confirm: the target stops it all the same
+                if stopping:
+                    await self._send(drive, stopping)
+        sending = asyncio.ensure_future(both())
+        # Its failure after the command ended is the command's no more: taken, not raised.
+        sending.add_done_callback(lambda done: done.cancelled() or done.exception())
+        await asyncio.shield(sending)
 
     async def _standing_confirmed(self, drive) -> bool:
         """Return whether an axis whose velocity read 0 stands, by the drive's own measure.
@@ -592,13 +620,23 @@ class DriveCommands:
         enabled = status.state == cia402.OPERATION_ENABLED and (not status.needs_enable
                                                               or status.changing_mode)
         self._service.set_enabled(drive, False, changing_mode=enabled)
+        commanded = drive.objects.value(cia402.MODE)
         try:
             return await self._enable_from_here(drive, mode)
-        except BaseException:
+        except BaseException as failure:
             # Halted for the mode change, it needs a fresh enable (``_own``): not given back
-            # meanwhile, when a target would resume it in the old mode.
-            if self._is_current(drive) and not _halted_for_a_mode(drive):
+            # meanwhile, when a target would resume it in the old mode. Nor once the new mode
+            # was written: a target of the old mode would be taken as one of the new (a
+            # velocity of 0 as position 0).
+            if not self._is_current(drive) or _halted_for_a_mode(drive):
+                raise
+            if drive.objects.value(cia402.MODE) in (commanded, status.mode):
                 self._service.set_enabled(drive, self._still_enabled(drive, enabled))
+                raise
+            self._service.set_enabled(drive, False)
+            ON_TIMEOUT.set(MODE_CHANGED)
+            if isinstance(failure, DriveFailed):
+                raise DriveFailed(f'{failure}{MODE_CHANGED}', failure.abort_code) from None
             raise
 
     async def _enable_from_here(self, drive, mode: int) -> str:
@@ -684,16 +722,7 @@ class DriveCommands:
                 f'(the drive confirmed the write; no statusword shows its state)')
 
     async def _halt(self, drive, _mode: int) -> str:
-        # The halt's frames that map the target repeat the stopping one, not an older target
-        # the axis has left (moved since by an SDO write, or another master).
-        stopping: Dict[int, int] = {}
-        await self._send(drive, {}, halt='command', stopping=stopping)
-        if stopping:
-            # The halt bit alone leaves a drive that ignores it in a cyclic mode running. A
-            # write of its own, after the halt: in one write, a frame carrying the target
-            # with the controlword could follow another carrying the halt, and a SYNC of
-            # another master between the two would apply the older frame the drive holds.
-            await self._send(drive, stopping)
+        await self._halt_and_stop(drive, 'command')
         ON_TIMEOUT.set(HALT_HOLDS)
         await self._standstill(drive)
         await self._read_position(drive)
@@ -707,7 +736,14 @@ class DriveCommands:
         if mode in (cia402.PROFILE_POSITION, cia402.HOMING):
             # The move, set-points or homing it was halted in have ended (a command ends
             # them, this one too): released as it is, the drive would run on to their
-            # set-point, or home, with nobody watching. Held where it stands, as enable holds.
+            # set-point, or home, with nobody watching. Held where it stands, as enable
+            # holds: once it stands (a set-point where a braking axis is would cut its ramp
+            # short, and a real drive would overshoot it and come back).
+            if not drive.controlword & cia402.HALT:
+                return f'node {drive.node_id} is not halted: nothing to resume'
+            ON_TIMEOUT.set(RESUME_BRAKING)
+            await self._standstill(drive, just_halted=False)
+            ON_TIMEOUT.set('')
             held = await self._hold(drive, mode)
             await self._release_held(drive, mode, held.get(cia402.TARGET_POSITION, 0))
             return (f'node {drive.node_id} resumed, held where it stands: the '
