@@ -103,6 +103,17 @@ def test_enable_by_mode_name_prints_the_state_mode_and_statusword(axis):
     assert axis.drive.drive_state == 'SWITCH_ON_DISABLED'
 
 
+def test_an_nmt_stop_refused_for_an_enabled_drive_is_not_called_an_sdo_abort(axis):
+    # A new user's walkthrough: "error: SDO abort 0x08000022: drive 6 is OPERATION_ENABLED".
+    status, _, err = axis.cli('drive', str(NODE), 'enable', '--mode', 'CSV')
+    assert status == 0, err
+    status, out, err = axis.cli('nmt', str(NODE), 'stop')
+    assert status == 1, out + err
+    assert err.startswith(f'error: NMT command stop to node {NODE}: 0x08000022'), err
+    assert 'SDO abort' not in err, err
+    assert axis.drive.drive_state == 'OPERATION_ENABLED'
+
+
 @pytest.mark.parametrize('mode', ['xyz', '2', 'cs'])
 def test_a_bad_mode_is_refused_naming_the_modes_and_nothing_is_enabled(axis, capsys, mode):
     with pytest.raises(SystemExit) as exited:

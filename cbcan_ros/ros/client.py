@@ -241,7 +241,8 @@ class GatewayClient(ServiceCaller):
         response = yield from self._call(NmtCommand, 'nmt_command', NmtCommand.Request(
             node_id=node_id, command=code))
         if not response.success:
-            raise RequestFailed(f'NMT command {command} to node {node_id}', response)
+            name = next((name for name, number in NMT_COMMANDS.items() if number == code), code)
+            raise RequestFailed(f'NMT command {name} to node {node_id}', response)
 
     nmt = blocking(_nmt)
     nmt_async = awaitable(_nmt)

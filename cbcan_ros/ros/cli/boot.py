@@ -24,7 +24,8 @@ def cmd_boot(client: Client, args) -> int:
     try:
         response = client.boot(args.node, args.timeout)
     except RequestFailed as failed:
-        _table(failed.response.states)
+        if failed.response.states:
+            _table(failed.response.states)
         print(f'error: {failed.response.message}', file=sys.stderr)
         return 1
     _table(response.states)
