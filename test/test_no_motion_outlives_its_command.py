@@ -194,16 +194,18 @@ def test_a_command_whose_time_runs_out_during_its_halt_still_sends_the_stopping_
     assert axis.drive.value(0x60FF) == struct.pack('<i', 0)
 
 
-def test_an_enable_that_failed_after_writing_the_new_mode_needs_a_fresh_one(rig, monkeypatch):
-    # Once a defect (a red team's, 5 of 5): such an enable gave the drive back "enabled" in
-    # the new mode, and the controller's stream of velocity 0 for the old mode went to it as
-    # position 0: the axis jumped thousands of counts.
+@pytest.mark.parametrize('command', ['enable', 'set_mode'])
+def test_a_mode_change_that_failed_after_writing_the_new_mode_needs_a_fresh_enable(
+        rig, monkeypatch, command):
+    # Once a defect (red teams', 5 of 5 and 6 of 6): such an enable or set_mode gave the
+    # drive back "enabled" in the new mode, and the controller's stream of velocity 0 for
+    # the old mode went to it as position 0: the axis jumped thousands of counts.
     armed = unanswered_writes(monkeypatch, lambda index, _value: index == 0x6060)
     axis = rig(pdos=layout_pdos('sdo_only'))
     axis.enable(CSV)
     axis.target.publish(Float64(data=0.0))
     armed.set()
-    answer = axis.command('enable', CSP, timeout=WAIT)
+    answer = axis.command(command, CSP, timeout=WAIT)
     assert not answer.success, answer.message
     assert 'the new mode was written: the drive needs a fresh enable' in answer.message, \
         answer.message
@@ -231,3 +233,42 @@ def test_a_resume_in_pp_waits_for_the_axis_to_stand_before_it_holds_it(rig):
     resumed = axis.command('resume', timeout=WAIT)
     assert resumed.success, resumed.message
     assert speeds == [0], f'the set-point came at velocities {speeds}'
+
+
+def test_a_command_after_one_that_ended_before_its_mode_showed_writes_its_own_mode(
+        rig, monkeypatch):
+    # Once a defect (a red team's, 10 of 10): a set_mode to CSP replaced by an enable in CSV
+    # while its mode write was on its way. The enable saw the drive still show CSV and sent
+    # no mode; the CSP write landed after it, and the drive ran in CSP while the gateway
+    # answered CSV (a stream of velocity 0 then went to it as position 0).
+    sent, landed = threading.Event(), threading.Event()
+
+    def on_sdo_frame(device, handler, cob_id, data):
+        data = bytes(data)
+        if data[0] & 0xE3 == 0x23 and data[1:3] == bytes([0x60, 0x60]) and data[4] == CSP:
+            sent.set()
+            # The write of CSP reaches the drive late (a busy drive, a SYNC to wait for).
+            def late():
+                answer_sdo(device, handler, cob_id, data)
+                landed.set()
+            threading.Timer(0.5, late).start()
+            return
+        answer_sdo(device, handler, cob_id, data)
+    answer_sdo = DurandDevice._on_sdo_frame
+    monkeypatch.setattr(DurandDevice, '_on_sdo_frame', on_sdo_frame)
+    axis = rig(pdos=layout_pdos('sdo_only'))
+    axis.enable(CSV)
+    axis.target.publish(Float64(data=0.0))
+    wait_until(lambda: axis.drive.velocity == 0, WAIT, 'the axis standing in CSV')
+    changing = threading.Thread(target=lambda: axis.command('set_mode', CSP, timeout=WAIT))
+    changing.start()
+    try:
+        wait_until(sent.is_set, WAIT, "the set_mode's write of CSP on its way")
+        assert not landed.is_set()
+        enabled = axis.command('enable', CSV, timeout=WAIT)
+    finally:
+        changing.join()
+    assert enabled.success, enabled.message
+    wait_until(landed.is_set, WAIT, 'the late write of CSP taken by the drive')
+    wait_until(lambda: axis.drive.value(0x6060) == bytes([CSV]), WAIT,
+               'the drive in CSV, as the enable answered')

@@ -185,7 +185,7 @@ class DriveCommands:
                 # the drive as it was before (a halt, a move); a set_mode takes it over. An
                 # enable leaves it to be enabled: a halt or move checked before the enable
                 # reaches its own step is refused as one checked during it.
-                still = self._still_enabled(drive, True)
+                still = self._still_enabled(drive, True) and drive.mode_pending is None
                 self._service.set_enabled(drive, not enabling and still,
                                           changing_mode=enabling and still)
         self._tasks[drive.node_id] = task
@@ -403,8 +403,10 @@ class DriveCommands:
             await self._send(drive, hold)
         if not self._shows_mode(drive, mode):
             drive.pp_goal = None  # the set-point of another mode is no base for a move
+            drive.mode_pending = mode
             await self._send(drive, {cia402.MODE: mode})
             await self._until(drive, lambda status: status.mode == mode)
+            drive.mode_pending = None
         return hold if halted_here else None
 
     async def _halt_for_mode(self, drive, braking: str = '') -> bool:
@@ -604,7 +606,12 @@ class DriveCommands:
         put the old mode back with the next step, and the drive would run on that mode's
         target, whatever was left in it.
         """
-        if self._service.status(drive.node_id).mode != mode:
+        shown = self._service.status(drive.node_id).mode
+        if drive.mode_pending == shown:
+            drive.mode_pending = None  # the write of an ended sequence landed
+        if shown != mode or drive.mode_pending is not None:
+            # Not while a mode written by an ended sequence may still land: the drive
+            # would go to that mode after this command took the one it shows.
             return False
         drive.objects.know({cia402.MODE: mode})
         return True
@@ -628,16 +635,29 @@ class DriveCommands:
             # meanwhile, when a target would resume it in the old mode. Nor once the new mode
             # was written: a target of the old mode would be taken as one of the new (a
             # velocity of 0 as position 0).
-            if not self._is_current(drive) or _halted_for_a_mode(drive):
-                raise
-            if drive.objects.value(cia402.MODE) in (commanded, status.mode):
-                self._service.set_enabled(drive, self._still_enabled(drive, enabled))
-                raise
-            self._service.set_enabled(drive, False)
-            ON_TIMEOUT.set(MODE_CHANGED)
-            if isinstance(failure, DriveFailed):
-                raise DriveFailed(f'{failure}{MODE_CHANGED}', failure.abort_code) from None
+            if self._is_current(drive) and not _halted_for_a_mode(drive):
+                self._give_back(drive, failure, commanded, status.mode,
+                                self._still_enabled(drive, enabled))
             raise
+
+    def _give_back(self, drive, failure: BaseException, commanded: Optional[int], shown: int,
+                   enabled: bool) -> None:
+        """Give a drive back as an enable or set_mode that ``failure`` ended found it.
+
+        ``enabled`` as it was, unless the sequence wrote a mode other than ``commanded`` and
+        ``shown`` at its start, or a mode written is not shown yet: a target of the old mode
+        would then be taken as one of the new (a velocity of 0 as position 0), so the drive
+        needs a fresh enable, and the answer says so (a DriveFailed is raised with that
+        said; a timeout says it itself).
+        """
+        if (drive.mode_pending is None
+                and drive.objects.value(cia402.MODE) in (commanded, shown)):
+            self._service.set_enabled(drive, enabled)
+            return
+        self._service.set_enabled(drive, False)
+        ON_TIMEOUT.set(MODE_CHANGED)
+        if isinstance(failure, DriveFailed):
+            raise DriveFailed(f'{failure}{MODE_CHANGED}', failure.abort_code) from None
 
     async def _enable_from_here(self, drive, mode: int) -> str:
         unbooted = self._service.boot_refusal(drive.node_id)
@@ -795,16 +815,19 @@ class DriveCommands:
         self._service.set_enabled(drive, False, changing_mode=enabled)
         task = asyncio.current_task()
         self._mode_changes.add(task)
+        commanded = drive.objects.value(cia402.MODE)
         try:
             hold = await self._change_mode(drive, mode)
             if hold is not None:
                 await self._release_held(drive, mode, hold.get(cia402.TARGET_POSITION, 0))
-        except BaseException:
+        except BaseException as failure:
             # Halted for it, the drive needs a fresh enable all the same (``_own``): not
-            # given back meanwhile, when a target would resume it in the old mode. Replaced,
-            # the drive is the newer command's, which had it given back (``_own``).
+            # given back meanwhile, when a target would resume it in the old mode. Nor once
+            # the new mode was written (``_enable``'s rule). Replaced, the drive is the newer
+            # command's, which had it given back (``_own``).
             if self._is_current(drive) and not _halted_for_a_mode(drive):
-                self._service.set_enabled(drive, self._still_enabled(drive, enabled))
+                self._give_back(drive, failure, commanded, status.mode,
+                                self._still_enabled(drive, enabled))
             raise
         finally:
             self._mode_changes.discard(task)

@@ -577,6 +577,7 @@ class DriveService:
                 drive.velocity_threshold = None
             if boot:  # UNKNOWN until re-read: its feedback waits for that read (_apply)
                 drive.objects.forget()
+                drive.mode_pending = None
                 drive.halted_by = ''
                 drive.status = replace(drive.status, state=cia402.UNKNOWN, needs_enable=True,
                                        changing_mode=False, halted=False)

@@ -114,6 +114,9 @@ class DriveRecord:
     pp_goal: Optional[int] = None  # the last PP set-point given since its enable: relative base
     unwatched: str = ''  # why it would run on if the gateway died (enable refused), or ''
     enabling: bool = False  # an enable runs on the drives' loop (what a refusal says meanwhile)
+    # A mode the gateway wrote (0x6060) that the drive has not shown yet: a sequence ended
+    # (failed, replaced) before it did, and the write may still land.
+    mode_pending: Optional[int] = None
     # Ends once the frames of its last command step sent in synchronous RPDOs are applied (an
     # asyncio task of the drives' loop; None: none sent).
     applied_at_sync: Optional[object] = None
